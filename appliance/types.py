@@ -1,0 +1,176 @@
+"""Data passed between the stages, the service and the outputs (see DESIGN.md, data flow).
+
+Road-plane coordinates everywhere: metres, X across the road (+ to the right as seen from the
+camera), Y along the road (+ away from the camera). Times: ``t`` is capture time in monotonic
+seconds, ``wall`` is Unix wall-clock seconds.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from enum import IntEnum
+from typing import Protocol
+
+import numpy as np
+
+
+@dataclass(slots=True)
+class Frame:
+    """One grey frame from a source."""
+
+    seq: int
+    t: float
+    wall: float
+    image: np.ndarray  # uint8, H x W
+    repeated: bool = False  # set by the source or the pipeline when identical to the previous frame
+
+
+@dataclass(slots=True)
+class VehicleState:
+    """A vehicle as the tracker sees it at one frame (provisional while ``finished`` is False)."""
+
+    id: int
+    t: float
+    x: float  # lateral road position of the representative point (m)
+    y_front: float  # along-road position of the vehicle's front in its direction of travel (m)
+    y_rear: float  # along-road position of its rear (m)
+    vx: float  # road velocity (m/s)
+    vy: float
+    length: float  # length estimate (m)
+    n_features: int
+    finished: bool = False  # True once, when the vehicle is finalised at the exit zone
+
+
+@dataclass(slots=True)
+class LoopEvent:
+    """One actuation of a virtual loop, as a real inductive loop of that length would give it."""
+
+    loop_id: str
+    channel: int
+    lane: int
+    t_on: float  # monotonic capture time
+    t_off: float
+    wall_on: float
+    wall_off: float
+    speed_kmh: float | None
+    length_m: float | None
+    vehicle_id: int | None = None
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(slots=True)
+class VehicleRecord:
+    """Summary of one finished vehicle."""
+
+    id: int
+    lane: int
+    wall_entry: float
+    wall_exit: float
+    speed_kmh: float
+    length_m: float
+    length_class: str
+    lane_changes: int = 0
+    trajectory: list[tuple[float, float, float]] | None = None  # (t, x, y) of the representative point
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(slots=True)
+class LaneAggregate:
+    """Per-lane measures over one period (Edie's generalised definitions over the lane region)."""
+
+    lane: int
+    period_start: float  # wall-clock, aligned to the period length
+    period_s: float
+    count: int
+    flow_vph: float  # Edie q = d(A)/|A|
+    density_vpkm: float  # Edie k = t(A)/|A|
+    speed_kmh: float | None  # Edie space-mean v = d(A)/t(A)
+    time_mean_speed_kmh: float | None
+    occupancy_pct: float | None
+    speed85_kmh: float | None
+    headway_s: float | None  # mean headway at the count position
+    class_counts: dict[str, int] = field(default_factory=dict)
+    partial: bool = False  # the period was not fully observed (start-up, restart, outage)
+    quality: int = 0  # bitfield of HealthFault values seen during the period
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+class HealthFault(IntEnum):
+    """Named faults; the value is the bit number in the health bitfield."""
+
+    CAMERA_LOST = 0
+    FROZEN_IMAGE = 1
+    TOO_DARK = 2
+    HEAVY_SHAKE = 3
+    FIDUCIALS_LOST = 4
+    LOCKED_ON = 5
+    NO_HITS = 6
+    STORAGE = 7
+    OVERLOAD = 8
+    CONFIG = 9
+
+
+@dataclass(slots=True)
+class ChannelState:
+    """What one detector channel (one virtual loop) shows the controller now."""
+
+    channel: int
+    loop_id: str
+    lane: int
+    call: bool  # presence (or pulse) call, after force-call and fail-safe are applied
+    count: int  # never reset; outputs wrap it to 16 bits
+    occupancy_pct: float  # over the current rolling window or the period so far
+    last_speed_kmh: float | None
+    last_length_m: float | None
+    class_counts: dict[str, int] = field(default_factory=dict)
+    forced: bool = False
+
+
+@dataclass(slots=True)
+class DetectorSnapshot:
+    """Everything the controller outputs publish, taken once per frame by the service."""
+
+    wall: float
+    uptime_s: float
+    channels: list[ChannelState]
+    faults: int  # bitfield of HealthFault
+    fps: float
+    last_period: list[LaneAggregate]  # last complete period, one per lane (empty before the first)
+    period_seq: int  # 0-255, incremented per completed period
+    tracked_vehicles: int = 0
+    dropped_frames: int = 0
+
+    def has_fault(self, fault: HealthFault) -> bool:
+        return bool(self.faults >> int(fault) & 1)
+
+
+class FrameSource(Protocol):
+    """A source of frames (drivers implement it). ``read`` returns None at end of stream."""
+
+    def open(self) -> None: ...
+
+    def read(self) -> Frame | None: ...
+
+    def close(self) -> None: ...
+
+
+class CommandSink(Protocol):
+    """What outputs and the status interface may ask of the service."""
+
+    def force_call(self, channel: int, seconds: float) -> None: ...
+
+
+class Output(Protocol):
+    """A controller output (Modbus TCP/RTU, serial line)."""
+
+    def start(self, commands: CommandSink) -> None: ...
+
+    def publish(self, snapshot: DetectorSnapshot, events: list[LoopEvent]) -> None: ...
+
+    def stop(self) -> None: ...
