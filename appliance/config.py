@@ -111,6 +111,11 @@ class TrackingParams:
     min_track_frames: int = 5
     stabilise: bool = True
     stabilise_model: str = "translation"  # or "similarity"
+    connection_lateral_m: float = 2.5  # r0 across the road (features of one vehicle are this close)
+    segmentation_lateral_m: float = 1.0  # pair dismissed when its lateral distance range exceeds this
+    segmentation_per_m: float = 0.1  # extra along-road allowance per metre travelled (feature heights)
+    static_drop_s: float = 1.0  # a feature that has not moved static_min_move_px by then is dropped
+    static_min_move_px: float = 4.0
 
 
 @dataclass
@@ -273,7 +278,8 @@ def _convert(value: Any, tp, key: str) -> Any:
 
 def _load_dataclass(cls, table: dict, prefix: str):
     hints = typing.get_type_hints(cls)
-    names = [f.name for f in dataclasses.fields(cls) if f.name not in ("homography", "path", "raw")]
+    derived = ("homography", "path", "raw") if cls is SiteConfig else ()
+    names = [f.name for f in dataclasses.fields(cls) if f.name not in derived]
     kwargs = {}
     for k, v in table.items():
         key = f"{prefix}.{k}" if prefix else k

@@ -1,0 +1,96 @@
+"""Corner detection in the detection zones: minimum eigenvalue of the structure tensor, NMS, spacing.
+
+Only moving texture is searched (frame-difference mask), so static road markings rarely start features.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from numba import njit
+
+from appliance.config import TrackingParams
+
+MOTION_LEVEL = 10  # grey levels of frame difference that count as motion
+MOTION_GROW_PX = 7  # motion mask dilation, so corners at the edge of moving texture are kept
+
+
+@njit(cache=True)
+def select_spaced(cand_xy, live_xy, spacing, max_n, out):
+    """Greedy pick from candidates sorted by decreasing score, each at least ``spacing`` px (Chebyshev)
+    from every live feature and every earlier pick. Writes candidate indices to out; returns the count."""
+    n = 0
+    for c in range(cand_xy.shape[0]):
+        if n >= max_n:
+            break
+        x = cand_xy[c, 0]
+        y = cand_xy[c, 1]
+        ok = True
+        for j in range(live_xy.shape[0]):
+            if abs(live_xy[j, 0] - x) < spacing and abs(live_xy[j, 1] - y) < spacing:
+                ok = False
+                break
+        if ok:
+            for k in range(n):
+                o = out[k]
+                if abs(cand_xy[o, 0] - x) < spacing and abs(cand_xy[o, 1] - y) < spacing:
+                    ok = False
+                    break
+        if ok:
+            out[n] = c
+            n += 1
+    return n
+
+
+class CornerDetector:
+    """Finds new corner features inside a fixed ROI with a zone mask."""
+
+    BLOCK = 5  # structure tensor window (px)
+    MAX_CANDIDATES_FACTOR = 8
+
+    def __init__(self, params: TrackingParams, roi: tuple[int, int, int, int], zone_mask: np.ndarray) -> None:
+        self.p = params
+        self.roi = roi
+        self.zone_mask = zone_mask  # uint8 0/255, ROI-sized
+        self.kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * MOTION_GROW_PX + 1, 2 * MOTION_GROW_PX + 1))
+        self.out = np.zeros(params.corners_per_frame, np.int64)
+        self.last_score: np.ndarray | None = None
+
+    def motion_mask(self, cur_roi: np.ndarray, prev_roi: np.ndarray) -> np.ndarray:
+        diff = cv2.absdiff(cur_roi, prev_roi)
+        _, m = cv2.threshold(diff, MOTION_LEVEL, 255, cv2.THRESH_BINARY)
+        return cv2.dilate(m, self.kernel)
+
+    def detect(self, img: np.ndarray, prev: np.ndarray | None, live_px: np.ndarray, shift: tuple[int, int] = (0, 0)) -> np.ndarray:
+        """New corner positions (N, 2) in full-image pixels, best first. ``shift`` moves the zones with
+        the camera (integer px)."""
+        x0, y0, x1, y1 = self.roi
+        sx, sy = shift
+        h, w = img.shape
+        x0s, x1s = min(max(0, x0 + sx), w - 1), min(max(1, x1 + sx), w)
+        y0s, y1s = min(max(0, y0 + sy), h - 1), min(max(1, y1 + sy), h)
+        cur = img[y0s:y1s, x0s:x1s]
+        mask = self.zone_mask[y0s - y0 - sy : y1s - y0 - sy, x0s - x0 - sx : x1s - x0 - sx]
+        if mask.shape != cur.shape or cur.size == 0:
+            return np.zeros((0, 2))
+        if prev is not None:
+            mask = cv2.bitwise_and(mask, self.motion_mask(cur, prev[y0s:y1s, x0s:x1s]))
+        score = cv2.cornerMinEigenVal(cur, self.BLOCK, 3)
+        self.last_score = score
+        peak = cv2.dilate(score, None)  # 3x3 non-maximum suppression
+        good = (score >= self.p.corner_min_eig) & (score >= peak) & (mask > 0)
+        # keep away from the border so the template fits
+        b = self.p.template_px // 2 + 1
+        good[:b, :] = False
+        good[-b:, :] = False
+        good[:, :b] = False
+        good[:, -b:] = False
+        ys, xs = np.nonzero(good)
+        if len(xs) == 0:
+            return np.zeros((0, 2))
+        sc = score[ys, xs]
+        order = np.argsort(-sc)[: self.p.corners_per_frame * self.MAX_CANDIDATES_FACTOR]
+        cand = np.stack([xs[order] + x0s, ys[order] + y0s], axis=1).astype(np.float64)
+        live = np.ascontiguousarray(live_px, dtype=np.float64).reshape(-1, 2)
+        n = select_spaced(cand, live, float(self.p.corner_spacing_px), self.p.corners_per_frame, self.out)
+        return cand[self.out[:n]]

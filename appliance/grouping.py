@@ -1,0 +1,225 @@
+"""Common-motion grouping of features into vehicles (incremental pair graph, connected components).
+
+A pair is linked when first seen together within the connection distance (same lane) and dismissed when
+its distance range over the common interval exceeds the segmentation threshold (TI/Beymer style).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numba import njit
+
+from appliance.config import TrackingParams
+from appliance.types import VehicleState
+from appliance.zones import SiteZones
+
+UNSEEN, LINKED, APART = 0, 1, 2
+
+
+@njit(cache=True)
+def pair_update(live, s, lane, state, rng, y0, conn_x, conn_y, seg_x, seg_y, seg_rel):
+    """Update the pair graph over the live slots. rng[i, j] = (min dx, max dx, min dy, max dy) of the pair
+    distance since linking; y0[i, j] = Y of the lower slot at linking (for the travelled distance)."""
+    n = live.shape[0]
+    for a in range(n):
+        i = live[a]
+        for b in range(a + 1, n):
+            j = live[b]
+            if i > j:
+                i2, j2 = j, i
+            else:
+                i2, j2 = i, j
+            dx = s[j2, 0] - s[i2, 0]
+            dy = s[j2, 1] - s[i2, 1]
+            st = state[i2, j2]
+            if st == UNSEEN:
+                if lane[i2] > 0 and lane[j2] > 0 and abs(dx) < conn_x and abs(dy) < conn_y:
+                    state[i2, j2] = LINKED
+                    rng[i2, j2, 0] = dx
+                    rng[i2, j2, 1] = dx
+                    rng[i2, j2, 2] = dy
+                    rng[i2, j2, 3] = dy
+                    y0[i2, j2] = s[i2, 1]
+                else:
+                    state[i2, j2] = APART
+            elif st == LINKED:
+                r = rng[i2, j2]
+                if dx < r[0]:
+                    r[0] = dx
+                if dx > r[1]:
+                    r[1] = dx
+                if dy < r[2]:
+                    r[2] = dy
+                if dy > r[3]:
+                    r[3] = dy
+                travel = abs(s[i2, 1] - y0[i2, j2])
+                if r[1] - r[0] > seg_x or r[3] - r[2] > seg_y + seg_rel * travel:
+                    state[i2, j2] = APART
+
+
+@njit(cache=True)
+def components(live, state, labels):
+    """Connected components of the LINKED graph over live slots; labels[slot] = smallest member slot."""
+    n = live.shape[0]
+    parent = np.arange(n)
+    for a in range(n):
+        i = live[a]
+        for b in range(a + 1, n):
+            j = live[b]
+            if i < j:
+                st = state[i, j]
+            else:
+                st = state[j, i]
+            if st == LINKED:
+                ra = a
+                while parent[ra] != ra:
+                    ra = parent[ra]
+                rb = b
+                while parent[rb] != rb:
+                    rb = parent[rb]
+                if ra != rb:
+                    if ra < rb:
+                        parent[rb] = ra
+                    else:
+                        parent[ra] = rb
+    for a in range(n):
+        r = a
+        while parent[r] != r:
+            r = parent[r]
+        parent[a] = r
+        labels[live[a]] = live[r]
+
+
+@dataclass
+class VehicleTrack:
+    """Bookkeeping of one vehicle hypothesis across frames."""
+
+    id: int
+    first_t: float
+    lane_index: int
+    frames: int = 0
+    n_max: int = 0
+    reported: bool = False
+    start_y: float = 0.0
+    last: VehicleState | None = None
+    trajectory: list[tuple[float, float, float]] = field(default_factory=list)
+
+
+class Grouper:
+    """Turns tracked features into provisional and finalised vehicles, one ``step`` per frame."""
+
+    def __init__(self, params: TrackingParams, zones: SiteZones) -> None:
+        n = params.max_features
+        self.p = params
+        self.zones = zones
+        self.state = np.zeros((n, n), np.int8)
+        self.rng = np.zeros((n, n, 4), np.float32)
+        self.y0 = np.zeros((n, n), np.float32)
+        self.labels = np.full(n, -1, np.int64)
+        self.fvid = np.full(n, -1, np.int64)
+        self.tracks: dict[int, VehicleTrack] = {}
+        self.next_vid = 1
+        self.finished_total = 0
+
+    def reset_slots(self, slots: np.ndarray) -> None:
+        """Forget every pair involving slots that now hold new features."""
+        self.state[slots, :] = UNSEEN
+        self.state[:, slots] = UNSEEN
+        self.fvid[slots] = -1
+
+    def _assign_ids(self, live: np.ndarray) -> dict[int, np.ndarray]:
+        labels = self.labels[live]
+        order = np.argsort(labels, kind="stable")
+        sl, sv = labels[order], live[order]
+        cuts = np.flatnonzero(np.diff(sl)) + 1
+        groups = np.split(sv, cuts)
+        groups.sort(key=len, reverse=True)
+        claimed: dict[int, np.ndarray] = {}
+        for members in groups:
+            vids = self.fvid[members]
+            vids = vids[vids >= 0]
+            vid = -1
+            if len(vids):
+                u, c = np.unique(vids, return_counts=True)
+                for k in np.lexsort((u, -c)):
+                    if int(u[k]) not in claimed:
+                        vid = int(u[k])
+                        break
+            if vid < 0:
+                vid = self.next_vid
+                self.next_vid += 1
+            self.fvid[members] = vid
+            claimed[vid] = members
+        return claimed
+
+    def step(self, t: float, s: np.ndarray, px: np.ndarray, lane: np.ndarray, alive: np.ndarray) -> tuple[list[VehicleState], np.ndarray]:
+        """Returns the vehicle states for this frame and the feature slots to retire (finalised vehicles)."""
+        p = self.p
+        live = np.flatnonzero(alive)
+        retire: list[np.ndarray] = []
+        out: list[VehicleState] = []
+        groups: dict[int, np.ndarray] = {}
+        if len(live):
+            pair_update(live, s, lane, self.state, self.rng, self.y0, p.connection_lateral_m, p.connection_m,
+                        p.segmentation_lateral_m, p.segmentation_m, p.segmentation_per_m)
+            components(live, self.state, self.labels)
+            groups = self._assign_ids(live)
+        for vid in list(self.tracks):
+            if vid not in groups:
+                tr = self.tracks.pop(vid)
+                if self._qualifies_on_loss(tr):
+                    out.append(self._finish(tr))
+        for vid, members in groups.items():
+            lanes = lane[members]
+            tr = self.tracks.get(vid)
+            if tr is None:
+                li = int(np.bincount(lanes).argmax())
+                tr = VehicleTrack(id=vid, first_t=t, lane_index=li)
+                self.tracks[vid] = tr
+            tr.frames += 1
+            tr.n_max = max(tr.n_max, len(members))
+            rep = members[np.argmax(px[members, 1])]  # nearest the camera: lowest in the image
+            ys = s[members, 1]
+            lz = self.zones.by_index(tr.lane_index) if tr.lane_index > 0 else None
+            sign = lz.sign if lz is not None else -1
+            y_lo, y_hi = float(ys.min()), float(ys.max())
+            front, rear = (y_lo, y_hi) if sign < 0 else (y_hi, y_lo)
+            if not tr.trajectory:
+                tr.start_y = float(s[rep, 1])
+            st = VehicleState(
+                id=vid, t=t, x=float(s[rep, 0]), y_front=front, y_rear=rear, vx=float(s[rep, 2]),
+                vy=float(s[rep, 3]), length=y_hi - y_lo, n_features=int(len(members)),
+            )
+            tr.last = st
+            tr.trajectory.append((t, st.x, float(s[rep, 1])))
+            if not tr.reported and tr.n_max >= p.min_features and tr.frames >= p.min_track_frames:
+                tr.reported = True
+            if lz is not None and lz.in_exit(float(s[rep, 1])):
+                self.tracks.pop(vid)
+                retire.append(members)
+                if tr.reported:
+                    out.append(self._finish(tr))
+                continue
+            if tr.reported:
+                out.append(st)
+        slots = np.concatenate(retire) if retire else np.zeros(0, np.int64)
+        return out, slots
+
+    def _qualifies_on_loss(self, tr: VehicleTrack) -> bool:
+        """A vehicle whose features were all lost still counts if it left the detection zone."""
+        if not tr.reported or tr.last is None or tr.lane_index <= 0:
+            return False
+        lz = self.zones.by_index(tr.lane_index)
+        y = tr.trajectory[-1][2]
+        d0, d1 = lz.detection_y
+        return y < d0 if lz.sign < 0 else y > d1
+
+    def _finish(self, tr: VehicleTrack) -> VehicleState:
+        st = tr.last
+        self.finished_total += 1
+        return VehicleState(
+            id=st.id, t=st.t, x=st.x, y_front=st.y_front, y_rear=st.y_rear, vx=st.vx, vy=st.vy,
+            length=st.length, n_features=st.n_features, finished=True,
+        )

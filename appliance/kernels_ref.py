@@ -1,0 +1,149 @@
+"""Plain NumPy reference implementations of the vision numba kernels, for tests to compare against."""
+
+from __future__ import annotations
+
+import numpy as np
+
+UNSEEN, LINKED, APART = 0, 1, 2
+
+
+def ncc_ref(img: np.ndarray, tmpl: np.ndarray, cx: int, cy: int) -> float:
+    """NCC of a zero-mean unit-norm template with the patch centred at (cx, cy)."""
+    h = tmpl.shape[0] // 2
+    patch = img[cy - h : cy + h + 1, cx - h : cx + h + 1].astype(np.float64)
+    z = patch - patch.mean()
+    nrm = np.sqrt((z * z).sum())
+    if nrm * nrm < 1e-6:
+        return -1.0
+    return float((z * tmpl).sum() / nrm)
+
+
+def template_ref(img: np.ndarray, cx: int, cy: int, size: int) -> np.ndarray:
+    h = size // 2
+    patch = img[cy - h : cy + h + 1, cx - h : cx + h + 1].astype(np.float64)
+    z = patch - patch.mean()
+    return z / np.sqrt((z * z).sum())
+
+
+def _parabola(a: float, b: float, c: float) -> float:
+    d = a - 2.0 * b + c
+    if d >= 0.0:
+        return 0.0
+    return float(np.clip(0.5 * (a - c) / d, -0.5, 0.5))
+
+
+def _project(M: np.ndarray, u: float, v: float) -> tuple[float, float]:
+    q = M @ np.array([u, v, 1.0])
+    return q[0] / q[2], q[1] / q[2]
+
+
+def track_one_ref(img, Hm, Hinv, off, dt, s, P, tmpl, age, radius, ncc_min, q_acc, sigma_px, max_acc, max_lat):
+    """One feature's predict/search/update. Returns (accepted, new s, new P, measured px, best ncc)
+    or None when the search window leaves the image."""
+    F = np.eye(4)
+    F[0, 2] = F[1, 3] = dt
+    G = np.array([[dt * dt / 2, 0], [0, dt * dt / 2], [dt, 0], [0, dt]])
+    Q = q_acc**2 * G @ G.T
+    sp = F @ s
+    Pp = F @ P @ F.T + Q
+    u, v = _project(Hinv, sp[0], sp[1])
+    u += off[0]
+    v += off[1]
+    r = radius if age >= 3 else 2 * radius
+    h = tmpl.shape[0] // 2
+    cx, cy = int(np.floor(u + 0.5)), int(np.floor(v + 0.5))
+    hh, ww = img.shape
+    if cx - r - h - 1 < 0 or cy - r - h - 1 < 0 or cx + r + h + 1 >= ww or cy + r + h + 1 >= hh:
+        return None
+    scores = np.array([[ncc_ref(img, tmpl, cx + dx, cy + dy) for dx in range(-r, r + 1)] for dy in range(-r, r + 1)])
+    by, bx = np.unravel_index(np.argmax(scores), scores.shape)
+    best = scores[by, bx]
+    if best < ncc_min:
+        return False, sp, Pp, (u, v), best
+    sx = _parabola(scores[by, bx - 1], best, scores[by, bx + 1]) if 0 < bx < 2 * r else 0.0
+    sy = _parabola(scores[by - 1, bx], best, scores[by + 1, bx]) if 0 < by < 2 * r else 0.0
+    mu, mv = cx + bx - r + sx, cy + by - r + sy
+    z = np.array(_project(Hm, mu - off[0], mv - off[1]))
+    J = np.array([
+        np.array(_project(Hm, mu - off[0] + 1, mv - off[1])) - z,
+        np.array(_project(Hm, mu - off[0], mv - off[1] + 1)) - z,
+    ]).T
+    R = sigma_px**2 * J @ J.T
+    Hk = np.hstack([np.eye(2), np.zeros((2, 2))])
+    S = Hk @ Pp @ Hk.T + R
+    innov = z - sp[:2]
+    slack = 0.5 * max_acc * dt * dt
+    if np.any(np.abs(innov) > slack + 3 * np.sqrt(np.diag(S))):
+        return False, sp, Pp, (u, v), best
+    K = Pp @ Hk.T @ np.linalg.inv(S)
+    sn = sp + K @ innov
+    if abs(sn[2]) > max_lat:
+        return False, sp, Pp, (u, v), best
+    Pn = (np.eye(4) - K @ Hk) @ Pp
+    return True, sn, Pn, (mu, mv), best
+
+
+def select_spaced_ref(cand_xy: np.ndarray, live_xy: np.ndarray, spacing: float, max_n: int) -> list[int]:
+    picked: list[int] = []
+    for c, (x, y) in enumerate(cand_xy):
+        if len(picked) >= max_n:
+            break
+        near_live = np.any((np.abs(live_xy[:, 0] - x) < spacing) & (np.abs(live_xy[:, 1] - y) < spacing)) if len(live_xy) else False
+        near_pick = any(abs(cand_xy[k, 0] - x) < spacing and abs(cand_xy[k, 1] - y) < spacing for k in picked)
+        if not near_live and not near_pick:
+            picked.append(c)
+    return picked
+
+
+def pair_update_ref(live, s, lane, state, rng, y0, conn_x, conn_y, seg_x, seg_y, seg_rel) -> None:
+    """Same contract as grouping.pair_update, vectorised over the upper triangle."""
+    live = np.sort(np.asarray(live))
+    I, J = np.triu_indices(len(live), 1)
+    i, j = live[I], live[J]
+    dx = s[j, 0] - s[i, 0]
+    dy = s[j, 1] - s[i, 1]
+    st = state[i, j]
+    new = st == UNSEEN
+    link = new & (lane[i] == lane[j]) & (lane[i] > 0) & (np.abs(dx) < conn_x) & (np.abs(dy) < conn_y)
+    state[i[new], j[new]] = np.where(link[new], LINKED, APART)
+    for k, v in enumerate((dx, dx, dy, dy)):
+        rng[i[link], j[link], k] = v[link]
+    y0[i[link], j[link]] = s[i[link], 1]
+    old = st == LINKED
+    io, jo = i[old], j[old]
+    r = rng[io, jo]
+    r[:, 0] = np.minimum(r[:, 0], dx[old])
+    r[:, 1] = np.maximum(r[:, 1], dx[old])
+    r[:, 2] = np.minimum(r[:, 2], dy[old])
+    r[:, 3] = np.maximum(r[:, 3], dy[old])
+    rng[io, jo] = r
+    travel = np.abs(s[io, 1] - y0[io, jo])
+    apart = (r[:, 1] - r[:, 0] > seg_x) | (r[:, 3] - r[:, 2] > seg_y + seg_rel * travel)
+    state[io[apart], jo[apart]] = APART
+
+
+def components_ref(live, state) -> dict[int, int]:
+    """slot -> smallest slot of its LINKED component (breadth-first search)."""
+    live = sorted(int(x) for x in live)
+    adj = {i: [] for i in live}
+    for a, i in enumerate(live):
+        for j in live[a + 1 :]:
+            if state[i, j] == LINKED:
+                adj[i].append(j)
+                adj[j].append(i)
+    label: dict[int, int] = {}
+    for i in live:
+        if i in label:
+            continue
+        comp, todo = [], [i]
+        while todo:
+            k = todo.pop()
+            if k in label:
+                continue
+            label[k] = -1
+            comp.append(k)
+            todo.extend(adj[k])
+        m = min(comp)
+        for k in comp:
+            label[k] = m
+    return label

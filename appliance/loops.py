@@ -1,0 +1,177 @@
+"""Virtual loops: presence/pulse call, actuation events, counts, occupancy, speed, length class."""
+
+from __future__ import annotations
+
+import bisect
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from appliance.config import LoopConfig, MeasuresConfig
+from appliance.types import ChannelState, LoopEvent
+
+
+def length_class(length_m: float | None, measures: MeasuresConfig) -> str | None:
+    """IRIS-style length bin name (``measures.length_class_bounds_m``/``_names``)."""
+    if length_m is None or not np.isfinite(length_m):
+        return None
+    return measures.length_class_names[bisect.bisect_right(measures.length_class_bounds_m, length_m)]
+
+
+def _below(a: float, b: float, c: float) -> tuple[float, float]:
+    """s-interval within [0, 1] where a + (b - a) s <= c."""
+    if abs(b - a) < 1e-12:
+        return (0.0, 1.0) if a <= c else (1.0, 0.0)
+    s = (c - a) / (b - a)
+    return (0.0, min(1.0, s)) if b > a else (max(0.0, s), 1.0)
+
+
+def overlap_interval(
+    lo0: float, hi0: float, lo1: float, hi1: float, y0: float, y1: float
+) -> tuple[float, float] | None:
+    """Fraction [sa, sb] of a step during which body [lo, hi] (moving linearly) overlaps [y0, y1]."""
+    a1, b1 = _below(lo0, lo1, y1)  # lo <= y1
+    a2, b2 = _below(-hi0, -hi1, -y0)  # hi >= y0
+    a, b = max(a1, a2), min(b1, b2)
+    return (a, b) if b >= a else None
+
+
+def union_length(intervals: list[tuple[float, float]], w0: float, w1: float) -> float:
+    """Length of the union of intervals clipped to [w0, w1]."""
+    clipped = sorted((max(a, w0), min(b, w1)) for a, b in intervals if b > w0 and a < w1)
+    total, end = 0.0, -np.inf
+    for a, b in clipped:
+        if b <= end:
+            continue
+        total += b - max(a, end)
+        end = b
+    return total
+
+
+@dataclass
+class _Presence:
+    t_on: float
+    wall_on: float
+    speeds: list[float] = field(default_factory=list)
+    length: float | None = None
+
+
+class VirtualLoop:
+    """One loop in one lane, spanning [y0, y1] along the road."""
+
+    def __init__(self, cfg: LoopConfig, measures: MeasuresConfig) -> None:
+        self.cfg = cfg
+        self.measures = measures
+        self.y0 = float(cfg.y_m)
+        self.y1 = float(cfg.y_m + cfg.length_m)
+        self.active: dict[int, _Presence] = {}
+        self.count = 0
+        self.class_counts: dict[str, int] = {}
+        self.last_speed: float | None = None
+        self.last_length: float | None = None
+        self.last_on_wall: float | None = None
+        self.intervals: list[tuple[float, float]] = []  # closed on-intervals (wall), pruned
+        self.on_times: dict[int, float] = {}  # vehicle -> t_on, for speed traps
+        self.partner: VirtualLoop | None = None
+        self.now_wall: float | None = None
+
+    def update(
+        self, vid: int, in_lane: bool, prev: tuple | None, cur: tuple, offset: float
+    ) -> LoopEvent | None:
+        """Advance one vehicle by one step. prev/cur = (t, lo, hi, speed, length); offset = wall - t."""
+        t1, lo1, hi1, v1, len1 = cur
+        if prev is None:
+            t0, lo0, hi0 = t1, lo1, hi1
+        else:
+            t0, lo0, hi0 = prev[0], prev[1], prev[2]
+        span = overlap_interval(lo0, hi0, lo1, hi1, self.y0, self.y1) if in_lane else None
+        p = self.active.get(vid)
+        dt = t1 - t0
+        if p is None:
+            if span is None:
+                return None
+            t_on = t0 + span[0] * dt
+            p = self.active[vid] = _Presence(t_on, t_on + offset)
+            self.on_times[vid] = t_on
+            self.count += 1
+            self.last_on_wall = t_on + offset
+        if span is not None:
+            p.speeds.append(v1)
+            p.length = len1
+            if span[1] >= 1.0:
+                return None
+            t_off = t0 + span[1] * dt
+        else:
+            t_off = t0
+        return self._close(vid, t_off, offset)
+
+    def drop(self, vid: int, t: float, offset: float) -> LoopEvent | None:
+        """The vehicle is gone (finished or lost) at t: end its actuation there."""
+        if vid in self.active:
+            return self._close(vid, t, offset)
+        return None
+
+    def _close(self, vid: int, t_off: float, offset: float) -> LoopEvent:
+        p = self.active.pop(vid)
+        t_off = max(t_off, p.t_on)
+        speed_kmh = float(np.mean(p.speeds)) * 3.6 if p.speeds else None
+        other = self.partner
+        if other is not None and vid in other.on_times:
+            dt = abs(p.t_on - other.on_times[vid])
+            if dt > 1e-3:
+                speed_kmh = abs(self.y0 - other.y0) / dt * 3.6
+        self.intervals.append((p.wall_on, t_off + offset))
+        self.last_speed = speed_kmh
+        self.last_length = p.length
+        cls = length_class(p.length, self.measures)
+        if cls is not None:
+            self.class_counts[cls] = self.class_counts.get(cls, 0) + 1
+        return LoopEvent(
+            loop_id=self.cfg.id, channel=self.cfg.channel, lane=self.cfg.lane, t_on=p.t_on, t_off=t_off,
+            wall_on=p.wall_on, wall_off=t_off + offset, speed_kmh=speed_kmh, length_m=p.length, vehicle_id=vid,
+        )
+
+    def occupied_s(self, w0: float, w1: float) -> float:
+        """Seconds of [w0, w1] during which the loop was occupied (ongoing presences up to now)."""
+        now = self.now_wall if self.now_wall is not None else w1
+        ongoing = [(p.wall_on, now) for p in self.active.values()]
+        return union_length(self.intervals + ongoing, w0, w1)
+
+    def prune(self, keep_after: float) -> None:
+        self.intervals = [iv for iv in self.intervals if iv[1] >= keep_after]
+        if len(self.on_times) > 256:
+            for vid in list(self.on_times)[:-128]:
+                del self.on_times[vid]
+
+    def call(self) -> bool:
+        if self.cfg.mode == "pulse":
+            return (
+                self.last_on_wall is not None
+                and self.now_wall is not None
+                and self.now_wall - self.last_on_wall < self.cfg.pulse_ms / 1000.0
+            )
+        return bool(self.active)
+
+    def channel_state(self, window_s: float, since_wall: float | None) -> ChannelState:
+        now = self.now_wall or 0.0
+        w0 = now - window_s
+        if since_wall is not None:
+            w0 = max(w0, since_wall)
+        occ = 100.0 * self.occupied_s(w0, now) / (now - w0) if now > w0 else 0.0
+        return ChannelState(
+            channel=self.cfg.channel, loop_id=self.cfg.id, lane=self.cfg.lane, call=self.call(), count=self.count,
+            occupancy_pct=occ, last_speed_kmh=self.last_speed, last_length_m=self.last_length,
+            class_counts=dict(self.class_counts),
+        )
+
+    def state(self) -> dict:
+        return {
+            "count": self.count, "class_counts": self.class_counts, "last_speed": self.last_speed,
+            "last_length": self.last_length, "intervals": self.intervals,
+        }
+
+    def restore(self, state: dict) -> None:
+        self.count = int(state["count"])
+        self.class_counts = dict(state["class_counts"])
+        self.last_speed, self.last_length = state["last_speed"], state["last_length"]
+        self.intervals = [tuple(iv) for iv in state["intervals"]]

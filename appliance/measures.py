@@ -1,0 +1,315 @@
+"""Per-lane traffic measures from tracked vehicles: counts, loops, Edie q/k/v, speeds, periods."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from appliance.config import SiteConfig
+from appliance.edie import EdieAccumulator, edie_qkv
+from appliance.lanes import LaneHistory, LaneMap
+from appliance.loops import VirtualLoop, length_class
+from appliance.periods import PERIOD_TOLERANCE_S, PeriodClock, period_start
+from appliance.types import ChannelState, LaneAggregate, LoopEvent, VehicleRecord, VehicleState
+
+LOST_AFTER_S = 2.0  # a vehicle not seen for this long (and never finished) is forgotten
+MAX_TRAJECTORY_POINTS = 2000
+
+
+@dataclass
+class Crossing:
+    """A vehicle's front crossing its lane's count line."""
+
+    vehicle_id: int
+    lane: int
+    t: float
+    wall: float
+    speed_kmh: float
+    length_m: float
+    y: float = 0.0  # the count line position (m)
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+@dataclass
+class MeasureUpdate:
+    loop_events: list[LoopEvent] = field(default_factory=list)
+    vehicles: list[VehicleRecord] = field(default_factory=list)  # finished this step
+    periods: list[LaneAggregate] = field(default_factory=list)  # completed this step, one per lane
+    crossings: list[Crossing] = field(default_factory=list)  # count-line crossings this step
+
+
+@dataclass
+class _Track:
+    first_t: float
+    first_wall: float
+    prev: tuple  # (t, x, y_front, y_rear, vy)
+    history: LaneHistory
+    lane_raw: int | None
+    speeds: list[float] = field(default_factory=list)
+    lengths: list[float] = field(default_factory=list)
+    counted_lane: int | None = None
+    trajectory: list[tuple[float, float, float]] = field(default_factory=list)
+
+
+def _states_of(v: VehicleState) -> list[VehicleState]:
+    """A vehicle's states to process: a finished vehicle may carry its whole trajectory."""
+    traj = getattr(v, "trajectory", None)
+    if not traj:
+        return [v]
+    out = []
+    for p in traj:
+        t, x, yf = float(p[0]), float(p[1]), float(p[2])
+        out.append(VehicleState(v.id, t, x, yf, yf - (v.y_front - v.y_rear), v.vx, v.vy, v.length, v.n_features))
+    if out[-1].t < v.t:
+        out.append(v)
+    return out
+
+
+class TrafficMeasures:
+    """Turns the tracker's vehicle states into loop events, vehicle records and period aggregates."""
+
+    def __init__(self, site: SiteConfig) -> None:
+        self.site = site
+        m = site.measures
+        self.period_s = float(m.period_s)
+        self.lanes = LaneMap(site)
+        self.count_y = {lane.id: float(lane.count_y_m) for lane in site.lanes}
+        self.region = {lane.id: (float(lane.region_y_m[0]), float(lane.region_y_m[1])) for lane in site.lanes}
+        self.edie = EdieAccumulator(self.lanes.ids, self.region, self.period_s)
+        self.clock = PeriodClock(self.period_s)
+        self.loops = [VirtualLoop(lp, m) for lp in sorted(site.loops, key=lambda lp: lp.channel)]
+        by_id = {lp.cfg.id: lp for lp in self.loops}
+        for lp in self.loops:
+            if lp.cfg.trap_with:
+                lp.partner = by_id[lp.cfg.trap_with]
+                by_id[lp.cfg.trap_with].partner = lp
+        self.occupancy_loop: dict[int, VirtualLoop] = {}
+        for lp in self.loops:
+            self.occupancy_loop.setdefault(lp.cfg.lane, lp)
+        self.tracks: dict[int, _Track] = {}
+        self.crossings: dict[int, list[Crossing]] = {lane: [] for lane in self.lanes.ids}
+        self.partial_periods: set[float] = set()
+        self.keep_trajectories = bool(site.store.trajectories)
+        self.now_wall: float | None = None
+        self.started_wall: float | None = None
+        self.gaps: list[tuple[float, float]] = []  # unobserved wall intervals (service restarts)
+        self._resumed_from: float | None = None
+
+    # ------------------------------------------------------------------ per step
+
+    def step(self, t: float, wall: float, vehicles: list[VehicleState]) -> MeasureUpdate:
+        out = MeasureUpdate()
+        offset = wall - t
+        if self.clock.current is None:
+            self.clock.advance(wall)
+            self.started_wall = wall
+            if wall - self.clock.current > PERIOD_TOLERANCE_S:
+                self.partial_periods.add(self.clock.current)
+        if self._resumed_from is not None:
+            if wall > self._resumed_from:
+                self.gaps.append((self._resumed_from, wall))
+            self._resumed_from = None
+        self.now_wall = wall
+        for lp in self.loops:
+            lp.now_wall = wall
+        seg_lane, seg_w0, seg_w1, seg_y0, seg_y1 = [], [], [], [], []
+        seen = set()
+        for v in vehicles:
+            seen.add(v.id)
+            for s in _states_of(v) if v.id not in self.tracks else [v]:
+                seg = self._advance(s, offset, out)
+                if seg is not None:
+                    seg_lane.append(seg[0]); seg_w0.append(seg[1]); seg_w1.append(seg[2])
+                    seg_y0.append(seg[3]); seg_y1.append(seg[4])
+            if v.finished:
+                self._finish(v, offset, out)
+        self.edie.add(np.array(seg_lane, dtype=np.int64), np.array(seg_w0), np.array(seg_w1),
+                      np.array(seg_y0), np.array(seg_y1))
+        for vid in [vid for vid, tr in self.tracks.items() if vid not in seen and t - tr.prev[0] > LOST_AFTER_S]:
+            tr = self.tracks.pop(vid)
+            for lp in self.loops:
+                ev = lp.drop(vid, tr.prev[0], offset)
+                if ev is not None:
+                    out.loop_events.append(ev)
+        for p in self.clock.advance(wall):
+            out.periods.extend(self._complete(p, partial=p in self.partial_periods))
+        return out
+
+    def _advance(self, v: VehicleState, offset: float, out: MeasureUpdate):
+        """Move one vehicle to state v; returns its Edie segment (lane, w0, w1, y0, y1) or None."""
+        raw = self.lanes.lane_at(v.x, v.y_front)
+        tr = self.tracks.get(v.id)
+        speed = abs(v.vy)
+        if tr is None:
+            tr = self.tracks[v.id] = _Track(v.t, v.t + offset, (v.t, v.x, v.y_front, v.y_rear, speed),
+                                            LaneHistory(), raw)
+            prev = None
+        else:
+            prev = tr.prev
+            if v.t <= prev[0]:
+                return None  # repeated or out-of-order state
+        lane = tr.history.update(raw)
+        tr.speeds.append(speed)
+        tr.lengths.append(v.length)
+        if self.keep_trajectories and len(tr.trajectory) < MAX_TRAJECTORY_POINTS:
+            tr.trajectory.append((v.t, v.x, v.y_front))
+        lo, hi = min(v.y_front, v.y_rear), max(v.y_front, v.y_rear)
+        cur = (v.t, lo, hi, speed, v.length)
+        pl = None if prev is None else (prev[0], min(prev[2], prev[3]), max(prev[2], prev[3]))
+        for lp in self.loops:
+            ev = lp.update(v.id, raw == lp.cfg.lane, pl, cur, offset)
+            if ev is not None:
+                out.loop_events.append(ev)
+        tr.prev = (v.t, v.x, v.y_front, v.y_rear, speed)
+        tr.lane_raw = raw
+        if prev is None:
+            return None
+        seg_lane = raw if raw is not None else lane
+        if tr.counted_lane is None and seg_lane is not None:
+            self._check_crossing(v, prev, seg_lane, offset, tr, out)
+        if seg_lane is None:
+            return None
+        return seg_lane, prev[0] + offset, v.t + offset, prev[2], v.y_front
+
+    def _check_crossing(self, v: VehicleState, prev: tuple, lane: int, offset: float, tr: _Track,
+                        out: MeasureUpdate) -> None:
+        c = self.count_y[lane]
+        y0, y1 = prev[2], v.y_front
+        if self.lanes.sign[lane] < 0:
+            crossed = y0 > c >= y1
+        else:
+            crossed = y0 < c <= y1
+        if not crossed:
+            return
+        s = (c - y0) / (y1 - y0)
+        tc = prev[0] + s * (v.t - prev[0])
+        speed = (prev[4] + s * (abs(v.vy) - prev[4])) * 3.6
+        x = prev[1] + s * (v.x - prev[1])
+        lane_c = self.lanes.lane_at(x, c) or lane
+        tr.counted_lane = lane_c
+        cr = Crossing(v.id, lane_c, tc, tc + offset, speed, v.length, self.count_y[lane_c])
+        self.crossings[lane_c].append(cr)
+        out.crossings.append(cr)
+
+    def _finish(self, v: VehicleState, offset: float, out: MeasureUpdate) -> None:
+        tr = self.tracks.pop(v.id, None)
+        if tr is None:
+            return
+        for lp in self.loops:
+            ev = lp.drop(v.id, v.t, offset)
+            if ev is not None:
+                out.loop_events.append(ev)
+        length = float(np.median(tr.lengths))
+        dur = v.t - tr.first_t
+        speed = float(np.median(tr.speeds)) * 3.6
+        lane = tr.counted_lane if tr.counted_lane is not None else tr.history.lane
+        out.vehicles.append(VehicleRecord(
+            id=v.id, lane=lane if lane is not None else 0, wall_entry=tr.first_wall, wall_exit=tr.first_wall + dur,
+            speed_kmh=speed, length_m=length, length_class=length_class(length, self.site.measures) or "",
+            lane_changes=tr.history.changes, trajectory=tr.trajectory if self.keep_trajectories else None,
+        ))
+
+    # ------------------------------------------------------------------ periods
+
+    def _covered(self, w0: float, w1: float) -> float:
+        """Observed seconds of [w0, w1]: after the first step, outside restart gaps."""
+        a = max(w0, self.started_wall if self.started_wall is not None else w0)
+        total = max(0.0, w1 - a)
+        for g0, g1 in self.gaps:
+            total -= max(0.0, min(g1, w1) - max(g0, a))
+        return max(total, 0.0)
+
+    def _complete(self, p: float, partial: bool) -> list[LaneAggregate]:
+        sums = self.edie.take(p)
+        covered = self._covered(p, p + self.period_s)
+        aggs = [self._aggregate(p, i, lane, sums, partial, covered) for i, lane in enumerate(self.lanes.ids)]
+        self.gaps = [g for g in self.gaps if g[1] > p + self.period_s]
+        for lane in self.lanes.ids:
+            self.crossings[lane] = [c for c in self.crossings[lane] if c.wall >= p + self.period_s]
+        self.partial_periods.discard(p)
+        window = self.site.measures.occupancy_window_s
+        for lp in self.loops:
+            lp.prune(min(p + self.period_s, (self.now_wall or p) - window))
+        return aggs
+
+    def _aggregate(self, p: float, i: int, lane: int, sums: np.ndarray, partial: bool,
+                   covered: float) -> LaneAggregate:
+        """One lane's aggregate; Edie's |A| and occupancy use the observed part of the period."""
+        ylo, yhi = self.region[lane]
+        covered = covered if covered > 1e-9 else self.period_s
+        q, k, v = edie_qkv(float(sums[0, i]), float(sums[1, i]), yhi - ylo, covered)
+        cr = sorted((c for c in self.crossings[lane] if p <= c.wall < p + self.period_s), key=lambda c: c.wall)
+        speeds = np.array([c.speed_kmh for c in cr])
+        times = np.array([c.wall for c in cr])
+        classes: dict[str, int] = {}
+        for c in cr:
+            name = length_class(c.length_m, self.site.measures)
+            if name is not None:
+                classes[name] = classes.get(name, 0) + 1
+        lp = self.occupancy_loop.get(lane)
+        occ = None
+        if lp is not None:
+            occ = 100.0 * lp.occupied_s(p, p + self.period_s) / covered
+        return LaneAggregate(
+            lane=lane, period_start=p, period_s=self.period_s, count=len(cr), flow_vph=q, density_vpkm=k,
+            speed_kmh=v, time_mean_speed_kmh=float(speeds.mean()) if len(cr) else None, occupancy_pct=occ,
+            speed85_kmh=float(np.percentile(speeds, 85)) if len(cr) else None,
+            headway_s=float(np.diff(times).mean()) if len(cr) >= 2 else None,
+            class_counts=classes, partial=partial,
+        )
+
+    def flush(self, wall: float) -> list[LaneAggregate]:
+        """The current period so far, as partial aggregates (on stop)."""
+        if self.clock.current is None:
+            return []
+        p = self.clock.current
+        covered = self._covered(p, min(wall, p + self.period_s))
+        return [self._aggregate(p, i, lane, self.edie.peek(p), True, covered) for i, lane in enumerate(self.lanes.ids)]
+
+    # ------------------------------------------------------------------ live state
+
+    def channels(self) -> list[ChannelState]:
+        window = self.site.measures.occupancy_window_s
+        return [lp.channel_state(window, self.started_wall) for lp in self.loops]
+
+    def live_lane_counts(self) -> dict[int, int]:
+        p = self.clock.current
+        if p is None:
+            return {lane: 0 for lane in self.lanes.ids}
+        return {lane: sum(1 for c in self.crossings[lane] if c.wall >= p) for lane in self.lanes.ids}
+
+    def state(self) -> dict:
+        """JSON-serialisable period-in-progress state (see ``restore``)."""
+        return {
+            "version": 1,
+            "clock": self.clock.state(),
+            "now_wall": self.now_wall,
+            "started_wall": self.started_wall,
+            "gaps": self.gaps,
+            "edie": self.edie.state(),
+            "crossings": {str(k): [c.to_dict() for c in v] for k, v in self.crossings.items()},
+            "partial": sorted(self.partial_periods),
+            "loops": {lp.cfg.id: lp.state() for lp in self.loops},
+        }
+
+    def restore(self, state: dict) -> None:
+        """Resume a saved period after a restart; the resumed period is marked partial (an outage)."""
+        if state.get("version") != 1:
+            raise ValueError(f"unknown measures state version {state.get('version')!r}")
+        self.clock.restore(state["clock"])
+        self.edie.restore(state["edie"])
+        for k, v in state["crossings"].items():
+            if int(k) in self.crossings:
+                self.crossings[int(k)] = [Crossing(**c) for c in v]
+        self.partial_periods = set(state["partial"])
+        if self.clock.current is not None:
+            self.partial_periods.add(self.clock.current)
+        self.started_wall = state.get("started_wall")
+        self.gaps = [tuple(g) for g in state.get("gaps", [])]
+        self._resumed_from = state.get("now_wall")
+        for lp in self.loops:
+            if lp.cfg.id in state["loops"]:
+                lp.restore(state["loops"][lp.cfg.id])

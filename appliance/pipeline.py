@@ -1,0 +1,228 @@
+"""The vision pipeline: repeated-frame check, stabilisation, corner detection, tracking, grouping.
+
+One ``step`` per frame returns the vehicles in view (provisional) and those finalised this frame.
+"""
+
+from __future__ import annotations
+
+import time
+
+import cv2
+import numpy as np
+
+from appliance.config import SiteConfig
+from appliance.corners import CornerDetector
+from appliance.grouping import Grouper
+from appliance.stabilise import Stabiliser
+from appliance.tracker import FeatureTracker
+from appliance.types import Frame, VehicleState
+from appliance.zones import SiteZones
+
+REPEAT_GRID = 4  # subsampling step of the repeated-frame check
+# A frame repeats the previous one when no grid pixel changed by more than this: encoder duplicates
+# differ by coding noise only (<= 15 grey levels in H.264 at crf 23), anything moving changes far more.
+# A genuinely still frame is skipped too, which loses nothing.
+REPEAT_MAX_DIFF = 20
+LANE_MARGIN_M = 2.0  # features this far beyond their lane's along-road extent are dropped
+LK_WIN = (15, 15)
+LK_LEVELS = 3
+
+
+class VisionPipeline:
+    """Stages in order; each holds its own state. ``stats`` has live numbers, ``timings`` seconds per stage."""
+
+    def __init__(self, site: SiteConfig) -> None:
+        self.site = site
+        self.width, self.height = int(site.source.width), int(site.source.height)
+        self.zones = SiteZones(site)
+        H = site.homography
+        p = site.tracking
+        self.p = p
+        self.stabiliser = Stabiliser(site.fiducials, self.zones.lane_image, enabled=p.stabilise)
+        self.detector = CornerDetector(p, self.zones.detection_roi, self.zones.detection_mask_roi)
+        self.tracker = FeatureTracker(p, H.H, H.Hinv)
+        self.grouper = Grouper(p, self.zones)
+        self.prev: np.ndarray | None = None
+        self.prev_grid: np.ndarray | None = None
+        self.prev_t: float | None = None
+        self.offset = (0.0, 0.0)
+        self.last_states: list[VehicleState] = []
+        self.stats: dict = {
+            "frames": 0, "features": 0, "vehicles": 0, "finished": 0, "shake_px": (0.0, 0.0),
+            "fiducials_ok": 0, "fiducials_total": 0, "repeated_frames": 0, "mean_grey": 0.0,
+        }
+        self.timings: dict[str, float] = {"stabilise": 0.0, "track": 0.0, "detect": 0.0, "group": 0.0}
+        lanes_px = [np.round(lz.polygon_px).astype(np.int32) for lz in self.zones.lanes]
+        self._lanes_px = lanes_px
+
+    # ------------------------------------------------------------------------------------------
+    def warmup(self) -> None:
+        """Compile (or load from cache) every numba kernel on dummy data, leaving no state behind."""
+        from appliance.corners import select_spaced
+        from appliance.grouping import components, pair_update
+        from appliance.tracker import init_features, track_step
+
+        p = self.p
+        T = p.template_px
+        img = (np.arange(64 * 64).reshape(64, 64) * 37 % 251).astype(np.uint8)
+        n = 4
+        alive = np.ones(n, np.bool_)
+        px = np.full((n, 2), 32.0)
+        s = np.zeros((n, 4))
+        s[:, :2] = 32.0
+        P = np.tile(np.eye(4), (n, 1, 1))
+        tmpl = np.zeros((n, T, T), np.float32)
+        ok = np.zeros(n, np.bool_)
+        init_features(img, np.arange(n, dtype=np.int64), px, tmpl, ok)
+        eye = np.eye(3)
+        track_step(img, eye, eye, 0.0, 0.0, 0.04, alive, px, s, P, tmpl, np.zeros(n, np.int32),
+                   np.zeros(n, np.int32), np.zeros(n, np.float32), 2, 0.7, 3.0, 0.5, 8.0, 4.0, 50.0, 2, 0.9)
+        select_spaced(np.zeros((3, 2)), np.zeros((1, 2)), 4.0, 2, np.zeros(2, np.int64))
+        live = np.arange(n, dtype=np.int64)
+        state = np.zeros((n, n), np.int8)
+        pair_update(live, s, np.ones(n, np.int32), state, np.zeros((n, n, 4), np.float32),
+                    np.zeros((n, n), np.float32), 2.5, 5.0, 1.0, 2.0, 0.1)
+        components(live, state, np.zeros(n, np.int64))
+
+    # ------------------------------------------------------------------------------------------
+    def _check_frame(self, frame: Frame) -> np.ndarray:
+        img = frame.image
+        if not isinstance(img, np.ndarray) or img.ndim not in (2, 3):
+            raise ValueError(f"frame {frame.seq}: image must be a 2-D grey (or 3-D BGR) array")
+        if img.ndim == 3:
+            img = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        if img.shape != (self.height, self.width):
+            raise ValueError(
+                f"frame {frame.seq}: size {img.shape[1]}x{img.shape[0]} does not match the config's "
+                f"source.width x source.height = {self.width}x{self.height}"
+            )
+        if img.dtype != np.uint8:
+            raise ValueError(f"frame {frame.seq}: image dtype {img.dtype}, expected uint8")
+        return np.ascontiguousarray(img)
+
+    def step(self, frame: Frame) -> list[VehicleState]:
+        img = self._check_frame(frame)
+        st = self.stats
+        st["frames"] += 1
+        grid = img[::REPEAT_GRID, ::REPEAT_GRID]
+        st["mean_grey"] = float(grid.mean())
+        if self.prev_grid is not None:
+            _, peak, _, _ = cv2.minMaxLoc(cv2.absdiff(grid, self.prev_grid))
+            repeated = frame.repeated or peak <= REPEAT_MAX_DIFF
+            if repeated or (self.prev_t is not None and frame.t <= self.prev_t):
+                st["repeated_frames"] += 1
+                return [v for v in self.last_states if not v.finished]
+        self.prev_grid = grid.copy()
+        dt = 0.0 if self.prev_t is None else frame.t - self.prev_t
+        self.prev_t = frame.t
+        tm = self.timings
+
+        c0 = time.perf_counter()
+        self.offset = self.stabiliser.step(img)
+        c1 = time.perf_counter()
+        tr = self.tracker
+        if dt > 0:
+            tr.step(img, self.offset, dt)
+            self._drop_features(frame.t)
+        c2 = time.perf_counter()
+        if self.prev is not None and dt > 0:
+            self._detect(img, dt, frame.t)
+        c3 = time.perf_counter()
+        states, retire = self.grouper.step(frame.t, tr.s, tr.px, tr.lane, tr.alive)
+        if len(retire):
+            tr.kill(retire)
+        c4 = time.perf_counter()
+        tm["stabilise"] += c1 - c0
+        tm["track"] += c2 - c1
+        tm["detect"] += c3 - c2
+        tm["group"] += c4 - c3
+
+        self.prev = img
+        self.last_states = states
+        st["features"] = int(tr.alive.sum())
+        st["vehicles"] = sum(1 for v in states if not v.finished)
+        st["finished"] = self.grouper.finished_total
+        st["shake_px"] = (round(self.offset[0], 2), round(self.offset[1], 2))
+        st["fiducials_ok"] = self.stabiliser.n_ok
+        st["fiducials_total"] = self.stabiliser.n_total
+        return states
+
+    def _drop_features(self, t: float) -> None:
+        tr = self.tracker
+        live = tr.live()
+        if not len(live):
+            return
+        ext = self.zones.lane_extent_by_index[tr.lane[live]]
+        y = tr.s[live, 1]
+        outside = (y < ext[:, 0] - LANE_MARGIN_M) | (y > ext[:, 1] + LANE_MARGIN_M)
+        static = (t - tr.born_t[live] > self.p.static_drop_s) & (tr.max_disp[live] < self.p.static_min_move_px)
+        # a feature moving against its lane's direction is on something else (shadow edge, noise)
+        sign = self.zones.sign_by_index[tr.lane[live]]
+        wrong = (tr.age[live] >= 3) & (tr.s[live, 3] * sign < -1.0)
+        drop = live[outside | static | wrong]
+        if len(drop):
+            tr.kill(drop)
+
+    def _detect(self, img: np.ndarray, dt: float, t: float) -> None:
+        tr = self.tracker
+        live = tr.live()
+        free = tr.capacity - len(live)
+        if free <= 0:
+            return
+        shift = (int(round(self.offset[0])), int(round(self.offset[1])))
+        pts = self.detector.detect(img, self.prev, tr.px[live], shift)[:free]
+        if not len(pts):
+            return
+        # where each new corner was one frame earlier (pyramidal LK), for its initial velocity
+        p0 = pts.astype(np.float32).reshape(-1, 1, 2)
+        prev_pts, status, _ = cv2.calcOpticalFlowPyrLK(img, self.prev, p0, None, winSize=LK_WIN, maxLevel=LK_LEVELS)
+        ok = status.reshape(-1).astype(bool)
+        pts, prev_pts = pts[ok], prev_pts.reshape(-1, 2)[ok].astype(np.float64)
+        ref = pts - np.asarray(self.offset)
+        lanes = self.zones.lane_at_px(ref)
+        inlane = lanes > 0
+        pts, prev_pts, lanes = pts[inlane], prev_pts[inlane], lanes[inlane]
+        if not len(pts):
+            return
+        slots = tr.add(img, pts, prev_pts, self.offset, dt, t, lanes)
+        self.grouper.reset_slots(slots)
+
+    # ------------------------------------------------------------------------------------------
+    def overlay(self, image: np.ndarray) -> np.ndarray:
+        """BGR drawing of lanes, zones, features and vehicles (one colour per vehicle) with ids."""
+        out = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR) if image.ndim == 2 else image.copy()
+        for lz, poly in zip(self.zones.lanes, self._lanes_px):
+            cv2.polylines(out, [poly], True, (200, 200, 200), 1, cv2.LINE_AA)
+            if len(lz.detection_px) >= 3:
+                cv2.polylines(out, [np.round(lz.detection_px).astype(np.int32)], True, (0, 200, 0), 1)
+            if len(lz.exit_px) >= 3:
+                cv2.polylines(out, [np.round(lz.exit_px).astype(np.int32)], True, (0, 0, 220), 1)
+            c = np.round(self.zones.H.road_to_img(
+                [[lz.polygon_m[:, 0].min(), lz.count_y], [lz.polygon_m[:, 0].max(), lz.count_y]])).astype(int)
+            cv2.line(out, tuple(c[0]), tuple(c[1]), (0, 220, 220), 1)
+        tr, g = self.tracker, self.grouper
+        live = tr.live()
+        for i in live:
+            vid = int(g.fvid[i])
+            col = _colour(vid) if vid in g.tracks and g.tracks[vid].reported else (128, 128, 128)
+            cv2.circle(out, (int(tr.px[i, 0]), int(tr.px[i, 1])), 2, col, -1)
+        for vid, trk in g.tracks.items():
+            if not trk.reported:
+                continue
+            members = live[g.fvid[live] == vid]
+            if not len(members):
+                continue
+            pts = tr.px[members].astype(np.int32)
+            x0, y0 = pts.min(axis=0)
+            x1, y1 = pts.max(axis=0)
+            col = _colour(vid)
+            cv2.rectangle(out, (int(x0) - 3, int(y0) - 3), (int(x1) + 3, int(y1) + 3), col, 1)
+            cv2.putText(out, str(vid), (int(x0), int(y0) - 5), cv2.FONT_HERSHEY_SIMPLEX, 0.4, col, 1, cv2.LINE_AA)
+        return out
+
+
+def _colour(vid: int) -> tuple[int, int, int]:
+    h = (vid * 47) % 180
+    hsv = np.uint8([[[h, 220, 255]]])
+    b, g, r = cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR)[0, 0]
+    return int(b), int(g), int(r)

@@ -1,0 +1,141 @@
+"""Per-lane detection and exit zones (road metres and image masks), defaulted from each lane's direction.
+
+Approaching lanes (Y decreasing) enter at the far end (top of the image) and leave near the camera;
+receding lanes the reverse. Features are detected at the entry end, vehicles finalised at the exit end.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from appliance.config import SiteConfig, clip_polygon_y
+from appliance.geometry import Homography
+
+DETECTION_ROW_SHARE = 0.55  # entry share of the lane's image rows where features are detected
+EXIT_ROW_SHARE = 0.12  # exit share of the lane's image rows where vehicles are finalised
+
+
+@dataclass
+class LaneZones:
+    """One lane's zones. ``sign`` is +1 for receding (Y increasing), -1 for approaching."""
+
+    lane_id: int
+    index: int  # 1-based label used in the lane image
+    sign: int
+    polygon_m: np.ndarray
+    y_extent: tuple[float, float]
+    detection_y: tuple[float, float]
+    exit_y: tuple[float, float]
+    count_y: float
+    polygon_px: np.ndarray
+    detection_px: np.ndarray
+    exit_px: np.ndarray
+
+    def in_exit(self, y: float) -> bool:
+        """Whether a vehicle's representative point at along-road position y has reached the exit zone."""
+        return y <= self.exit_y[1] if self.sign < 0 else y >= self.exit_y[0]
+
+
+def _y_at_row(H: Homography, poly_px: np.ndarray, row: float) -> float:
+    """Along-road Y at an image row, taken at the lane's middle column."""
+    cx = float(poly_px[:, 0].mean())
+    return float(H.img_to_road([[cx, row]])[0, 1])
+
+
+def _default_ranges(H: Homography, poly_px: np.ndarray, ylo: float, yhi: float, sign: int):
+    top, bottom = float(poly_px[:, 1].min()), float(poly_px[:, 1].max())
+    span = bottom - top
+    far_det = _y_at_row(H, poly_px, top + DETECTION_ROW_SHARE * span)
+    near_det = _y_at_row(H, poly_px, bottom - DETECTION_ROW_SHARE * span)
+    far_exit = _y_at_row(H, poly_px, top + EXIT_ROW_SHARE * span)
+    near_exit = _y_at_row(H, poly_px, bottom - EXIT_ROW_SHARE * span)
+    if sign < 0:  # approaching: detect at the far end, finalise near the camera
+        det = (max(ylo, min(far_det, yhi)), yhi)
+        ext = (ylo, max(ylo, min(near_exit, yhi)))
+    else:
+        det = (ylo, min(yhi, max(near_det, ylo)))
+        ext = (min(yhi, max(far_exit, ylo)), yhi)
+    return det, ext
+
+
+def _poly_px(H: Homography, poly_m: np.ndarray, y0: float, y1: float) -> np.ndarray:
+    part = clip_polygon_y(poly_m, y0, y1)
+    if len(part) < 3:
+        return np.zeros((0, 2))
+    return H.road_to_img(part)
+
+
+class SiteZones:
+    """All lanes' zones plus the image masks the stages need (built once per site and frame size)."""
+
+    def __init__(self, site: SiteConfig) -> None:
+        H = site.homography
+        if H is None:
+            raise ValueError("site config is not validated: no homography (use appliance.config.parse_site)")
+        self.H = H
+        self.width, self.height = int(site.source.width), int(site.source.height)
+        self.lanes: list[LaneZones] = []
+        for i, lane in enumerate(site.lanes):
+            poly = np.asarray(lane.polygon_m, dtype=np.float64)
+            ylo, yhi = float(poly[:, 1].min()), float(poly[:, 1].max())
+            sign = -1 if lane.direction == "approaching" else 1
+            poly_px = H.road_to_img(poly)
+            det, ext = _default_ranges(H, poly_px, ylo, yhi, sign)
+            if lane.detection_y_m is not None:
+                det = (float(lane.detection_y_m[0]), float(lane.detection_y_m[1]))
+            if lane.exit_y_m is not None:
+                ext = (float(lane.exit_y_m[0]), float(lane.exit_y_m[1]))
+            count_y = float(lane.count_y_m) if lane.count_y_m is not None else 0.5 * (ylo + yhi)
+            self.lanes.append(
+                LaneZones(
+                    lane_id=lane.id,
+                    index=i + 1,
+                    sign=sign,
+                    polygon_m=poly,
+                    y_extent=(ylo, yhi),
+                    detection_y=det,
+                    exit_y=ext,
+                    count_y=count_y,
+                    polygon_px=poly_px,
+                    detection_px=_poly_px(H, poly, *det),
+                    exit_px=_poly_px(H, poly, *ext),
+                )
+            )
+        self.lane_image = self._paint("polygon_px")  # 0 = no lane, else LaneZones.index
+        self.detection_image = self._paint("detection_px")
+        ys, xs = np.nonzero(self.detection_image)
+        if len(xs) == 0:
+            raise ValueError("no detection zone falls inside the image")
+        # ROI (x0, y0, x1, y1) of all detection zones, with room for the corner window
+        m = 4
+        self.detection_roi = (
+            max(0, int(xs.min()) - m),
+            max(0, int(ys.min()) - m),
+            min(self.width, int(xs.max()) + m + 1),
+            min(self.height, int(ys.max()) + m + 1),
+        )
+        x0, y0, x1, y1 = self.detection_roi
+        self.detection_mask_roi = np.ascontiguousarray((self.detection_image[y0:y1, x0:x1] > 0).astype(np.uint8) * 255)
+        self.sign_by_index = np.array([0] + [lz.sign for lz in self.lanes], dtype=np.int32)
+        self.lane_extent_by_index = np.array([[0.0, 0.0]] + [list(lz.y_extent) for lz in self.lanes])
+
+    def _paint(self, attr: str) -> np.ndarray:
+        img = np.zeros((self.height, self.width), np.uint8)
+        for lz in self.lanes:
+            pts = getattr(lz, attr)
+            if len(pts) >= 3:
+                cv2.fillPoly(img, [np.round(pts).astype(np.int32)], int(lz.index))
+        return img
+
+    def lane_at_px(self, px: np.ndarray) -> np.ndarray:
+        """Lane index (0 = none) under each image point (N, 2)."""
+        p = np.asarray(px).reshape(-1, 2)
+        x = np.clip(np.round(p[:, 0]).astype(np.int64), 0, self.width - 1)
+        y = np.clip(np.round(p[:, 1]).astype(np.int64), 0, self.height - 1)
+        return self.lane_image[y, x].astype(np.int32)
+
+    def by_index(self, index: int) -> LaneZones:
+        return self.lanes[index - 1]

@@ -1,0 +1,91 @@
+"""Hand-count comparisons: site-from-counts on the real CDnet clip, matching rules, full replay."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+from click.testing import CliRunner
+
+from appliance.config import load_site
+from tools.evaluate import compare_with_counts
+from tools.handcount import load_counts, site_from_counts
+
+
+@pytest.fixture(scope="module")
+def counts_file(shared_data):
+    p = shared_data / "cdnet-highway" / "counts.json"
+    if not p.exists():
+        pytest.skip("cdnet-highway/counts.json missing")
+    return p
+
+
+@pytest.fixture(scope="module")
+def site_file(counts_file, tmp_path_factory):
+    out = tmp_path_factory.mktemp("hw") / "site.toml"
+    r = CliRunner().invoke(site_from_counts, [str(counts_file), "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    return out
+
+
+def test_site_from_counts_makes_a_valid_site(site_file, counts_file):
+    site = load_site(site_file)
+    counts = json.loads(counts_file.read_text())
+    assert [ln.id for ln in site.lanes] == [1, 2]
+    assert (site.source.width, site.source.height) == tuple(counts["size"])
+    # the count line is image row 175, documented as road Y = 8.59 m
+    for lane in site.lanes:
+        assert lane.count_y_m == pytest.approx(8.59, abs=0.05)
+    assert [lp.channel for lp in site.loops] == [1, 2]
+    # loop zones: documented as road Y 6.34 .. 10.84 m
+    for lp in site.loops:
+        assert lp.y_m == pytest.approx(6.34, abs=0.1)
+        assert lp.length_m == pytest.approx(4.5, abs=0.15)
+    url = site.source.url.removeprefix("images:")
+    assert (site_file.parent / url).parent.resolve() == (counts_file.parent / "input").resolve()
+
+
+def test_site_from_counts_rejects_bad_file(tmp_path):
+    bad = tmp_path / "counts.json"
+    bad.write_text(json.dumps({"size": [320, 240], "lanes": []}))
+    r = CliRunner().invoke(site_from_counts, [str(bad), "--out", str(tmp_path / "s.toml")])
+    assert r.exit_code != 0 and "missing key 'count_line_px'" in r.output
+
+
+def test_matching_rule(counts_file):
+    counts = load_counts(counts_file)
+    hand = counts["crossings"]
+    res = [{"frame": c["frame"] + 2, "lane": c["lane"]} for i, c in enumerate(hand) if i not in (0, 6)]
+    res.append({"frame": hand[5]["frame"] + 40, "lane": hand[5]["lane"]})  # an extra, far in time
+    res.append({"frame": hand[6]["frame"], "lane": 3 - hand[6]["lane"]})  # right time, wrong lane
+    cmp = compare_with_counts(counts, res, tolerance_frames=3)
+    assert len(cmp.matches) == len(hand) - 2
+    assert {c["frame"] for c in cmp.missed} == {hand[0]["frame"], hand[6]["frame"]}
+    assert len(cmp.extra) == 2
+    tight = compare_with_counts(counts, res, tolerance_frames=1)
+    assert len(tight.matches) == 0
+
+
+def test_replay_and_evaluate_real_clip(site_file, counts_file, tmp_path):
+    """The whole chain from the command line on the 1700-frame clip (~15 s)."""
+    out = tmp_path / "res.sqlite"
+    video = counts_file.parent / "input" / "in%06d.jpg"
+    r = subprocess.run([sys.executable, "-m", "tools.cli", "replay", str(video), "--config", str(site_file),
+                        "--fps", "25", "--out", str(out), "--vehicles"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "1700 frames" in r.stdout
+    r = subprocess.run([sys.executable, "-m", "tools.cli", "evaluate", "--counts", str(counts_file),
+                        "--results", str(out)], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    rows = {int(ln.split()[0]): [int(x) for x in ln.split()[1:]] for ln in r.stdout.splitlines()
+            if ln.strip() and ln.split()[0].isdigit()}
+    hand = {1: 17, 2: 10}
+    matched = sum(rows[lane][2] for lane in hand)
+    # every hand-counted vehicle is a clear, separated vehicle: a working tracker finds at least 24
+    # of the 27 (25 found when this test was written); a broken one finds few or none
+    assert matched >= 24, r.stdout
+    # extras (over-segmented vehicles, trucks spilling into lane 2) stayed at 12 when written; the
+    # target is +-1 per lane, this only guards against getting worse
+    assert sum(rows[lane][4] for lane in hand) <= 14, r.stdout

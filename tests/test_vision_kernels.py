@@ -1,0 +1,135 @@
+"""The vision numba kernels against their plain NumPy references (appliance.kernels_ref)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from appliance import kernels_ref as ref
+from appliance.corners import select_spaced
+from appliance.grouping import components, pair_update
+from appliance.tracker import extract_template, ncc_at, track_step
+
+
+def _texture(seed: int, h: int = 120, w: int = 160) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    small = rng.integers(0, 255, (h // 4, w // 4)).astype(np.uint8)
+    return cv2.GaussianBlur(cv2.resize(small, (w, h), interpolation=cv2.INTER_CUBIC), (3, 3), 0)
+
+
+def test_ncc_and_template_match_reference():
+    img = _texture(0)
+    t = np.zeros((9, 9), np.float32)
+    assert extract_template(img, 50, 40, t)
+    np.testing.assert_allclose(t, ref.template_ref(img, 50, 40, 9), atol=1e-6)
+    for cx, cy in [(50, 40), (52, 41), (80, 60), (20, 100)]:
+        assert ncc_at(img, t, cx, cy) == pytest.approx(ref.ncc_ref(img, t, cx, cy), abs=1e-5)
+    assert ncc_at(img, t, 50, 40) == pytest.approx(1.0, abs=1e-5)
+    flat = np.full((30, 30), 7, np.uint8)
+    assert not extract_template(flat, 15, 15, t)
+
+
+def _homography() -> tuple[np.ndarray, np.ndarray]:
+    img = np.array([[0, 119], [159, 119], [55, 10], [105, 10]], np.float64)
+    road = np.array([[-4, 0], [4, 0], [-4, 40], [4, 40]], np.float64)
+    Hm, _ = cv2.findHomography(img, road)
+    return Hm, np.linalg.inv(Hm)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_track_step_matches_reference(seed):
+    rng = np.random.default_rng(seed)
+    Hm, Hinv = _homography()
+    prev = _texture(seed)
+    # the whole image shifted by a known subpixel amount stands in for the next frame
+    shift = rng.uniform(-2.5, 2.5, 2)
+    M = np.float32([[1, 0, shift[0]], [0, 1, shift[1]]])
+    cur = cv2.warpAffine(prev, M, (160, 120), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+    n = 12
+    px = np.column_stack([rng.uniform(30, 130, n), rng.uniform(40, 100, n)])
+    tmpl = np.zeros((n, 9, 9), np.float32)
+    for i in range(n):
+        extract_template(prev, int(round(px[i, 0])), int(round(px[i, 1])), tmpl[i])
+        px[i] = np.round(px[i])
+    road = ref._project  # noqa: F841 - for readability below
+    s = np.zeros((n, 4))
+    for i in range(n):
+        s[i, :2] = ref._project(Hm, px[i, 0], px[i, 1])
+    s[:, 2:] = rng.normal(0, 0.5, (n, 2))
+    P = np.tile(np.diag([0.05, 0.05, 4.0, 4.0]), (n, 1, 1))
+    age = rng.integers(0, 6, n).astype(np.int32)
+    args = dict(radius=3, ncc_min=0.7, q_acc=3.0, sigma_px=0.5, max_acc=8.0, max_lat=4.0)
+    dt = 0.04
+    expected = [
+        ref.track_one_ref(cur, Hm, Hinv, (0.0, 0.0), dt, s[i].copy(), P[i].copy(), tmpl[i].astype(np.float64), age[i], **args)
+        for i in range(n)
+    ]
+    alive = np.ones(n, np.bool_)
+    s2, P2, px2 = s.copy(), P.copy(), px.copy()
+    miss = np.zeros(n, np.int32)
+    ncc = np.zeros(n, np.float32)
+    track_step(cur, Hm, Hinv, 0.0, 0.0, dt, alive, px2, s2, P2, tmpl.copy(), age.copy(), miss, ncc, 3, 0.7, 3.0, 0.5,
+               8.0, 4.0, 60.0, 2, 0.0)
+    n_acc = 0
+    errs = []
+    for i, e in enumerate(expected):
+        if e is None:
+            assert not alive[i]
+            continue
+        accepted, se, Pe, me, best = e
+        assert (miss[i] == 0) == accepted, i
+        np.testing.assert_allclose(s2[i], se, rtol=1e-6, atol=1e-8)
+        np.testing.assert_allclose(P2[i], Pe, rtol=1e-6, atol=1e-10)
+        if accepted:
+            n_acc += 1
+            np.testing.assert_allclose(px2[i], me, atol=1e-9)
+            # and the match is where the image really moved: a 3-point parabola is biased by up to
+            # ~0.4 px on a sharp NCC peak; 0.45 px still fails for an integer-only or wrong match
+            np.testing.assert_allclose(px2[i] - px[i], shift, atol=0.45)
+            errs.append(np.abs(px2[i] - px[i] - shift))
+    assert n_acc >= n // 2
+    assert np.mean(errs) < 0.2  # on average well below half a pixel
+
+
+def test_select_spaced_matches_reference():
+    rng = np.random.default_rng(7)
+    cand = rng.uniform(0, 100, (300, 2))
+    live = rng.uniform(0, 100, (40, 2))
+    out = np.zeros(25, np.int64)
+    k = select_spaced(cand, live, 6.0, 25, out)
+    assert list(out[:k]) == ref.select_spaced_ref(cand, live, 6.0, 25)
+    assert k > 5
+
+
+def test_pair_graph_and_components_match_reference():
+    rng = np.random.default_rng(11)
+    n = 60
+    # three rigid "vehicles" in one lane and one in another, plus noise features, over 20 frames
+    base = rng.uniform(-1, 1, (n, 2)) * [0.8, 2.0]
+    veh = rng.integers(0, 4, n)
+    offs = np.array([[-1.7, 50.0], [-1.7, 56.0], [-1.7, 70.0], [1.7, 52.0]])
+    speed = np.array([-15.0, -17.0, -14.0, -16.0])
+    lane = np.where(veh == 3, 2, 1).astype(np.int32)
+    live = np.sort(rng.choice(n, 50, replace=False)).astype(np.int64)
+    st_a = np.zeros((n, n), np.int8)
+    st_b = st_a.copy()
+    rng_a = np.zeros((n, n, 4), np.float32)
+    rng_b = rng_a.copy()
+    y0a = np.zeros((n, n), np.float32)
+    y0b = y0a.copy()
+    for f in range(20):
+        t = f * 0.04
+        s = np.zeros((n, 4))
+        s[:, :2] = base + offs[veh] + np.column_stack([np.zeros(n), speed[veh] * t]) + rng.normal(0, 0.03, (n, 2))
+        pair_update(live, s, lane, st_a, rng_a, y0a, 2.5, 5.0, 1.0, 0.5, 0.02)
+        ref.pair_update_ref(live, s, lane, st_b, rng_b, y0b, 2.5, 5.0, 1.0, 0.5, 0.02)
+        np.testing.assert_array_equal(st_a, st_b)
+    labels = np.full(n, -1, np.int64)
+    components(live, st_a, labels)
+    expect = ref.components_ref(live, st_b)
+    assert {int(i): int(labels[i]) for i in live} == expect
+    # the grouping separates what moves differently: no component mixes two vehicles
+    for lab in set(expect.values()):
+        members = [i for i, v in expect.items() if v == lab]
+        assert len(set(veh[members])) == 1

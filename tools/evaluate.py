@@ -1,0 +1,293 @@
+"""`roadwatch evaluate`: compare replay results with simulator truth or with a hand-count file."""
+
+from __future__ import annotations
+
+import csv
+import json
+import sqlite3
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import click
+import numpy as np
+
+TABLE1_BANDS = (2.5, 5.0, 10.0, 15.0, 20.0, 25.0)  # % bands of the paper's Table 1
+
+
+class EvaluateError(ValueError):
+    """Results or truth cannot be read (names the file and the problem)."""
+
+
+# ------------------------------------------------------------------------------------ reading
+
+
+def _num(v):
+    if v is None or v == "":
+        return None
+    if isinstance(v, (int, float)):
+        return v
+    try:
+        f = float(v)
+    except ValueError:
+        return v
+    return int(f) if f.is_integer() and "." not in str(v) and "e" not in str(v).lower() else f
+
+
+def read_csv(path: Path) -> list[dict]:
+    if not path.exists():
+        return []
+    with path.open(newline="") as f:
+        rows = []
+        for r in csv.DictReader(f):
+            row = {k: _num(v) for k, v in r.items()}
+            for k in ("partial",):
+                if k in row and isinstance(row[k], str):
+                    row[k] = row[k].lower() == "true"
+            if isinstance(row.get("class_counts"), str):
+                try:
+                    row["class_counts"] = json.loads(row["class_counts"])
+                except json.JSONDecodeError:
+                    pass
+            rows.append(row)
+        return rows
+
+
+def load_results(path: str | Path) -> dict[str, list[dict]]:
+    """periods, crossings, loop_events, vehicles from a replay .sqlite or .csv result."""
+    p = Path(path)
+    if not p.exists():
+        raise EvaluateError(f"{p}: no such results file")
+    if p.suffix.lower() == ".csv":
+        return {
+            "periods": read_csv(p),
+            "crossings": read_csv(p.with_name(p.stem + "_crossings.csv")),
+            "loop_events": read_csv(p.with_name(p.stem + "_loop_events.csv")),
+            "vehicles": read_csv(p.with_name(p.stem + "_vehicles.csv")),
+        }
+    try:
+        conn = sqlite3.connect(f"file:{p}?mode=ro", uri=True)
+        conn.row_factory = sqlite3.Row
+        tables = {r[0] for r in conn.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+    except sqlite3.DatabaseError as e:
+        raise EvaluateError(f"{p}: not a results CSV or SQLite file ({e})") from None
+    if "periods" not in tables:
+        raise EvaluateError(f"{p}: has no periods table (not a roadwatch results file)")
+    out = {}
+    for name in ("periods", "crossings", "loop_events", "vehicles"):
+        out[name] = [dict(r) for r in conn.execute(f"SELECT * FROM {name}")] if name in tables else []
+    for r in out["periods"]:
+        if isinstance(r.get("class_counts"), str):
+            r["class_counts"] = json.loads(r["class_counts"])
+        r["partial"] = bool(r.get("partial"))
+    conn.close()
+    return out
+
+
+def load_truth(truth_dir: str | Path) -> dict:
+    d = Path(truth_dir)
+    if not (d / "aggregates.csv").exists():
+        raise EvaluateError(f"{d}: no aggregates.csv (not a simulator truth directory)")
+    meta = json.loads((d / "meta.json").read_text()) if (d / "meta.json").exists() else {}
+    return {
+        "periods": read_csv(d / "aggregates.csv"),
+        "loop_events": read_csv(d / "loop_events.csv"),
+        "vehicles_path": d / "vehicles.csv",
+        "meta": meta,
+    }
+
+
+# ------------------------------------------------------------------------------------ comparing
+
+
+def rel_err_pct(est: float | None, truth: float | None) -> float | None:
+    if est is None or truth is None or truth == 0:
+        return None
+    return 100.0 * (est - truth) / truth
+
+
+def table1(errors_pct: list[float]) -> dict[float, float]:
+    """Share (%) of samples whose absolute error is within each band of the paper's Table 1."""
+    e = np.abs(np.asarray(errors_pct, dtype=np.float64))
+    if len(e) == 0:
+        return {b: float("nan") for b in TABLE1_BANDS}
+    return {b: 100.0 * float(np.mean(e <= b)) for b in TABLE1_BANDS}
+
+
+@dataclass
+class TruthComparison:
+    lane_counts: dict[int, tuple[int, int]] = field(default_factory=dict)  # lane -> (truth, result)
+    pairs: list[tuple[dict, dict]] = field(default_factory=list)  # matched (truth, result) periods
+    errors: dict[str, list[float]] = field(default_factory=dict)  # flow/density/speed % errors
+    occupancy_pp: list[float] = field(default_factory=list)
+    loop_counts: dict[int, tuple[int, int]] = field(default_factory=dict)  # channel -> (truth, result)
+
+    def count_error_pct(self, lane: int) -> float:
+        t, r = self.lane_counts[lane]
+        return 100.0 * (r - t) / t if t else (0.0 if r == 0 else float("inf"))
+
+
+def compare_with_truth(truth: dict, results: dict, include_partial: bool = True) -> TruthComparison:
+    cmp = TruthComparison(errors={"flow": [], "density": [], "speed": []})
+    res = {(int(r["lane"]), float(r["period_start"])): r for r in results["periods"]}
+    for t in truth["periods"]:
+        key = (int(t["lane"]), float(t["period_start"]))
+        r = res.get(key)
+        if r is None or (not include_partial and (t.get("partial") or r.get("partial"))):
+            continue
+        cmp.pairs.append((t, r))
+        lane = key[0]
+        tc, rc = cmp.lane_counts.get(lane, (0, 0))
+        cmp.lane_counts[lane] = (tc + int(t["count"]), rc + int(r["count"]))
+        for name, col in (("flow", "flow_vph"), ("density", "density_vpkm"), ("speed", "speed_kmh")):
+            e = rel_err_pct(r.get(col), t.get(col))
+            if e is not None:
+                cmp.errors[name].append(e)
+        if t.get("occupancy_pct") is not None and r.get("occupancy_pct") is not None:
+            cmp.occupancy_pp.append(float(r["occupancy_pct"]) - float(t["occupancy_pct"]))
+    for ev, slot in ((truth.get("loop_events", []), 0), (results.get("loop_events", []), 1)):
+        for e in ev:
+            ch = int(e["channel"])
+            c = list(cmp.loop_counts.get(ch, (0, 0)))
+            c[slot] += 1
+            cmp.loop_counts[ch] = tuple(c)
+    return cmp
+
+
+def format_truth_report(cmp: TruthComparison) -> str:
+    lines = ["Per-lane counts (matched periods):", f"  {'lane':>4} {'truth':>6} {'result':>6} {'error %':>8}"]
+    for lane in sorted(cmp.lane_counts):
+        t, r = cmp.lane_counts[lane]
+        lines.append(f"  {lane:>4} {t:>6} {r:>6} {cmp.count_error_pct(lane):>8.1f}")
+    lines.append(f"\nPeriod errors, share of samples within (Table 1 form), {len(cmp.pairs)} lane-periods:")
+    lines.append("  " + f"{'measure':<8} {'n':>4} " + " ".join(f"{'<=' + str(b) + '%':>7}" for b in TABLE1_BANDS)
+                 + f" {'mean %':>7} {'max |%|':>7}")
+    for name in ("flow", "density", "speed"):
+        e = cmp.errors[name]
+        shares = table1(e)
+        mean = float(np.mean(e)) if e else float("nan")
+        mx = float(np.max(np.abs(e))) if e else float("nan")
+        lines.append("  " + f"{name:<8} {len(e):>4} " + " ".join(f"{shares[b]:>7.1f}" for b in TABLE1_BANDS)
+                     + f" {mean:>7.2f} {mx:>7.2f}")
+    if cmp.occupancy_pp:
+        o = np.abs(cmp.occupancy_pp)
+        lines.append(f"\nLoop occupancy error: mean |{o.mean():.2f}| pp, max {o.max():.2f} pp over {len(o)} lane-periods")
+    if cmp.loop_counts:
+        lines.append("Loop actuations per channel (truth/result): "
+                     + ", ".join(f"{ch}: {t}/{r}" for ch, (t, r) in sorted(cmp.loop_counts.items())))
+    return "\n".join(lines)
+
+
+@dataclass
+class CountComparison:
+    per_lane: dict[int, dict[str, int]] = field(default_factory=dict)  # lane -> matched/missed/extra/hand/result
+    matches: list[tuple[dict, dict]] = field(default_factory=list)
+    missed: list[dict] = field(default_factory=list)
+    extra: list[dict] = field(default_factory=list)
+
+
+def compare_with_counts(counts: dict, crossings: list[dict], tolerance_frames: int = 4,
+                        fps: float | None = None, frame_range: tuple[int, int] | None = None) -> CountComparison:
+    """Match result crossings with hand-counted ones: same lane, frames within the tolerance."""
+    fps = fps or float(counts.get("fps", 25.0))
+    hand = [dict(c) for c in counts["crossings"]]
+    res = []
+    for c in crossings:
+        c = dict(c)
+        if c.get("frame") is None:
+            c["frame"] = int(round(float(c["t"]) * fps))
+        res.append(c)
+    if frame_range is not None:
+        lo, hi = frame_range
+        hand = [c for c in hand if lo <= c["frame"] <= hi]
+        res = [c for c in res if lo <= c["frame"] <= hi]
+    cmp = CountComparison()
+    lanes = sorted({int(c["lane"]) for c in hand} | {int(c["lane"]) for c in res} | {int(ln["id"]) for ln in counts["lanes"]})
+    for lane in lanes:
+        h = sorted((c for c in hand if int(c["lane"]) == lane), key=lambda c: c["frame"])
+        r = sorted((c for c in res if int(c["lane"]) == lane), key=lambda c: c["frame"])
+        cand = sorted(
+            (abs(int(a["frame"]) - int(b["frame"])), i, j)
+            for i, a in enumerate(h) for j, b in enumerate(r) if abs(int(a["frame"]) - int(b["frame"])) <= tolerance_frames
+        )
+        used_h, used_r = set(), set()
+        for _, i, j in cand:
+            if i in used_h or j in used_r:
+                continue
+            used_h.add(i); used_r.add(j)
+            cmp.matches.append((h[i], r[j]))
+        missed = [h[i] for i in range(len(h)) if i not in used_h]
+        extra = [r[j] for j in range(len(r)) if j not in used_r]
+        cmp.missed += missed
+        cmp.extra += extra
+        cmp.per_lane[lane] = {"hand": len(h), "result": len(r), "matched": len(used_h),
+                              "missed": len(missed), "extra": len(extra)}
+    return cmp
+
+
+def format_count_report(cmp: CountComparison) -> str:
+    lines = [f"  {'lane':>4} {'hand':>5} {'result':>6} {'matched':>7} {'missed':>6} {'extra':>5} {'diff':>5}"]
+    for lane, d in sorted(cmp.per_lane.items()):
+        lines.append(f"  {lane:>4} {d['hand']:>5} {d['result']:>6} {d['matched']:>7} {d['missed']:>6} {d['extra']:>5} "
+                     f"{d['result'] - d['hand']:>+5d}")
+    if cmp.missed:
+        lines.append("missed (hand frame, lane): " + ", ".join(f"{c['frame']}/{c['lane']}" for c in cmp.missed))
+    if cmp.extra:
+        lines.append("extra (result frame, lane): " + ", ".join(f"{c['frame']}/{c['lane']}" for c in cmp.extra))
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------------------ command
+
+
+@click.command(name="evaluate")
+@click.option("--results", "results_path", required=True, type=click.Path(dir_okay=False),
+              help="replay results (.sqlite or .csv)")
+@click.option("--truth", "truth_dir", type=click.Path(file_okay=False), default=None,
+              help="simulator truth directory (aggregates.csv, loop_events.csv, vehicles.csv)")
+@click.option("--counts", "counts_path", type=click.Path(dir_okay=False), default=None,
+              help="hand-count file (counts.json)")
+@click.option("--tolerance", type=int, default=4, show_default=True, help="frames for a hand-count match")
+@click.option("--complete-only", is_flag=True, help="ignore partial periods")
+@click.option("--plot", "plot_png", type=click.Path(dir_okay=False), default=None, help="scatter plot PNG (Fig. 7)")
+@click.option("--errors-png", type=click.Path(dir_okay=False), default=None, help="Table-1 error distribution PNG")
+@click.option("--time-space", "ts_png", type=click.Path(dir_okay=False), default=None,
+              help="time-space diagram PNG (Fig. 6)")
+def evaluate(results_path, truth_dir, counts_path, tolerance, complete_only, plot_png, errors_png, ts_png) -> None:
+    """Compare replay results with simulator truth (--truth) or a hand count (--counts)."""
+    if (truth_dir is None) == (counts_path is None):
+        raise click.UsageError("give exactly one of --truth DIR or --counts counts.json")
+    try:
+        results = load_results(results_path)
+        if truth_dir:
+            truth = load_truth(truth_dir)
+            cmp = compare_with_truth(truth, results, include_partial=not complete_only)
+            if not cmp.pairs:
+                raise EvaluateError(f"{results_path}: no period matches the truth's lanes and period starts "
+                                    f"(was the replay --start the simulator's start time?)")
+            click.echo(format_truth_report(cmp))
+            from tools import plots
+
+            if plot_png:
+                plots.scatter_periods(cmp.pairs, plot_png)
+                click.echo(f"wrote {plot_png}")
+            if errors_png:
+                plots.error_distribution(cmp.errors, errors_png)
+                click.echo(f"wrote {errors_png}")
+            if ts_png:
+                plots.time_space(truth["vehicles_path"], results.get("crossings", []), ts_png,
+                                 start_wall=float(truth["meta"].get("start_wall", 0.0)))
+                click.echo(f"wrote {ts_png}")
+        else:
+            from tools.handcount import HandCountError, load_counts
+
+            try:
+                counts = load_counts(counts_path)
+            except HandCountError as e:
+                raise EvaluateError(str(e)) from None
+            cmp = compare_with_counts(counts, results["crossings"], tolerance)
+            click.echo(f"Crossings vs hand count ({counts_path}, match = same lane within {tolerance} frames):")
+            click.echo(format_count_report(cmp))
+            if plot_png or ts_png or errors_png:
+                click.echo("(plots are made for --truth comparisons only)", err=True)
+    except EvaluateError as e:
+        raise click.ClickException(str(e)) from None

@@ -1,0 +1,1 @@
+"""The field config tool: `roadwatch` subcommands for installers and maintenance staff."""

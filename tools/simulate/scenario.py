@@ -1,0 +1,156 @@
+"""Render a whole scenario to out_dir: video.mp4, site.toml and the truth files (vehicles, loops, periods)."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import shutil
+import subprocess
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from tools.simulate.scene import Scene
+from tools.simulate.stream import site_toml
+from tools.simulate.truth import AGGREGATE_FIELDS, LOOP_FIELDS, VEHICLE_FIELDS, _fmt, write_csv
+
+
+@dataclass
+class ScenarioOutput:
+    video: Path
+    site: Path
+    truth_dir: Path
+    meta: dict
+
+
+class VideoWriter:
+    """Grey frames to an mp4 file: H.264 through an ffmpeg pipe, or OpenCV's mp4v when ffmpeg is missing."""
+
+    def __init__(self, path: Path, width: int, height: int, fps: float, crf: int = 23):
+        self.path, self.n = path, 0
+        self.proc = None
+        self.cv = None
+        if shutil.which("ffmpeg"):
+            cmd = ["ffmpeg", "-loglevel", "error", "-y", "-f", "rawvideo", "-pix_fmt", "gray", "-s", f"{width}x{height}",
+                   "-r", f"{fps:g}", "-i", "-", "-c:v", "libx264", "-preset", "ultrafast", "-tune", "zerolatency",
+                   "-crf", str(crf), "-pix_fmt", "yuv420p", "-threads", "1", str(path)]
+            self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE)
+        else:
+            self.cv = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (width, height), True)
+            if not self.cv.isOpened():
+                raise RuntimeError(f"cannot open a video writer for {path}")
+
+    def write(self, img: np.ndarray) -> None:
+        self.n += 1
+        if self.proc is not None:
+            self.proc.stdin.write(np.ascontiguousarray(img).tobytes())
+        else:
+            self.cv.write(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
+
+    def close(self) -> None:
+        if self.proc is not None:
+            self.proc.stdin.close()
+            if self.proc.wait() != 0:
+                raise RuntimeError(f"ffmpeg failed writing {self.path}")
+        else:
+            self.cv.release()
+
+
+def capture_times(seconds: float, content_fps: float, jitter_ms: float, rng: np.random.Generator) -> np.ndarray:
+    """True capture times of the rendered frames (nominal grid plus jitter, strictly increasing, t0 = 0)."""
+    n = max(1, int(math.floor(seconds * content_fps + 1e-9)))
+    t = np.arange(n) / content_fps
+    if jitter_ms > 0:
+        j = rng.normal(0.0, jitter_ms / 1000.0, n)
+        j = np.clip(j, -0.3 / content_fps, 0.3 / content_fps)
+        j[0] = 0.0
+        t = t + j
+    return t
+
+
+def render_scenario(preset: str, seed: int, seconds: float, out_dir: Path, *, width: int = 640, height: int = 480,
+                    fps: float = 25.0, progress: bool = False, **overrides) -> "ScenarioOutput":
+    """Render `seconds` of a preset scene with its exact truth into out_dir (created if missing)."""
+    if seconds <= 0:
+        raise ValueError(f"seconds must be positive, got {seconds}")
+    out_dir = Path(out_dir)
+    truth_dir = out_dir / "truth"
+    truth_dir.mkdir(parents=True, exist_ok=True)
+    scene = Scene(preset, seed, width=width, height=height, fps=fps, **overrides)
+    p = scene.p
+    rng = np.random.default_rng([int(seed), 7])
+    content_fps = fps / p.repeat_frames
+    times = capture_times(seconds, content_fps, p.jitter_ms, rng)
+    dropped = (rng.random(len(times)) < p.drop_prob) & (np.arange(len(times)) > 0)
+
+    site = scene.site_dict("video.mp4")
+    site["source"]["realtime"] = False
+    site_path = out_dir / "site.toml"
+    site_path.write_text(site_toml(site))
+
+    video_path = out_dir / "video.mp4"
+    writer = VideoWriter(video_path, width, height, fps, p.video_crf)
+    frames_rows = []
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(times), unit="frame", desc=f"{preset} seed {seed}")
+    vf = open(truth_dir / "vehicles.csv", "w", newline="")
+    vw = csv.writer(vf)
+    vw.writerow(VEHICLE_FIELDS)
+    t_prev = 0.0
+    drop_pending = False
+    try:
+        for i, t in enumerate(times):
+            if t > t_prev:
+                scene.step(float(t - t_prev))
+                t_prev = float(t)
+            if dropped[i]:
+                drop_pending = True
+                if bar:
+                    bar.update(1)
+                continue
+            img, rows = scene.render()
+            frame = writer.n
+            for r in range(p.repeat_frames):
+                frames_rows.append(dict(frame=writer.n, t=round(float(t), 6), repeated=r > 0,
+                                        dropped_before=drop_pending and r == 0))
+                writer.write(img)
+            drop_pending = False
+            for row in rows:
+                row["frame"], row["t"] = frame, round(float(t), 6)
+                vw.writerow([_fmt(row[k]) for k in VEHICLE_FIELDS])
+            if bar:
+                bar.update(1)
+        # the truth runs to the end of the scenario even when the last frames were dropped or padded
+        t_end = len(times) / content_fps
+        if t_end > t_prev:
+            scene.step(t_end - t_prev)
+    finally:
+        vf.close()
+        writer.close()
+        if bar:
+            bar.close()
+
+    write_csv(truth_dir / "loop_events.csv", LOOP_FIELDS, scene.truth.loop_events)
+    write_csv(truth_dir / "aggregates.csv", AGGREGATE_FIELDS, scene.truth.aggregates())
+    write_csv(truth_dir / "frames.csv", ["frame", "t", "repeated", "dropped_before"], frames_rows)
+    meta = dict(
+        preset=preset, seed=int(seed), fps=float(fps), width=width, height=height, seconds=float(seconds),
+        frame_count=writer.n, start_wall=scene.truth.start_wall, period_s=scene.truth.period_s,
+        defects=dict(repeat_frames=p.repeat_frames, drop_prob=p.drop_prob, jitter_ms=p.jitter_ms,
+                     dropped_frames=int(dropped.sum())),
+        camera=dict(height_m=scene.cam.height_m, tilt_deg=scene.cam.tilt_deg, pan_deg=scene.cam.pan_deg,
+                    focal_px=scene.cam.focal_px, x_m=scene.cam.x_m),
+        conditions={k: getattr(p, k) for k in ("night", "dusk", "rain", "overcast", "shadows", "shake_px",
+                                               "drift_px_per_min", "noise_sigma", "defocus")},
+        overrides={k: v for k, v in overrides.items() if v is not None},
+        frames_file="truth/frames.csv",
+        vehicles_spawned=int(scene.traffic.next_id - 1),
+    )
+    (truth_dir / "meta.json").write_text(json.dumps(meta, indent=1))
+    return ScenarioOutput(video_path, site_path, truth_dir, meta)

@@ -1,0 +1,273 @@
+"""One synthetic scene: camera, road, static background, traffic, exact truth, and frame rendering."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+from tools.simulate.background import draw_quads, render_background, shadow_points
+from tools.simulate.camera import Camera
+from tools.simulate.conditions import Conditions
+from tools.simulate.presets import SceneParams, scene_params
+from tools.simulate.road import RoadLayout
+from tools.simulate.traffic import Traffic, lane_at_x
+from tools.simulate.truth import START_WALL, StepState, TruthAccumulator, TruthLane, TruthLoop
+from tools.simulate.vehicles import build_shape
+
+LOOP_LENGTH_M = 1.8
+WARM_UP_S = 90.0
+
+
+class Scene:
+    """Build with a preset name and seed; then alternate `step(dt)` and `render()`."""
+
+    def __init__(self, preset: str, seed: int, *, width: int = 640, height: int = 480, fps: float = 25.0,
+                 period_s: float = 300.0, **overrides):
+        self.preset, self.seed, self.fps = preset, int(seed), float(fps)
+        if width < 64 or height < 48:
+            raise ValueError(f"image size {width}x{height} is too small (at least 64x48)")
+        if not 0 < fps <= 240:
+            raise ValueError(f"fps must be in (0, 240], got {fps}")
+        self.p: SceneParams = scene_params(preset, **overrides)
+        p = self.p
+        streams = np.random.SeedSequence(self.seed).spawn(4)
+        self.rng_traffic, rng_bg, rng_cond, self.rng_shape = (np.random.default_rng(s) for s in streams)
+        self.layout = RoadLayout.make(p.lanes_approaching, p.lanes_receding, p.lane_width_m)
+        cam_x = self.layout.x_max + p.cam_offset_m
+        pan = p.cam_pan_deg if p.cam_pan_deg is not None else math.degrees(math.atan2(-cam_x, 60.0))
+        self.cam = Camera(width, height, p.focal_scale * width, p.cam_height_m, p.cam_tilt_deg, pan, cam_x)
+        el, az = math.radians(p.sun_elevation_deg), math.radians(p.sun_azimuth_deg)
+        self.sun = np.array([math.cos(el) * math.sin(az), math.cos(el) * math.cos(az), math.sin(el)])
+        self.ambient = 0.85 if (p.overcast or p.night or p.dusk) else 0.5
+        self.exposure = 0.28 if p.night else 0.5 if p.dusk else 0.8 if p.overcast else 1.0
+        self.shadows = p.shadows and not (p.overcast or p.night or p.dusk)
+        light = self.sun * (0.35 if p.overcast else 1.0)
+        lamp_ys = [28.0, 68.0, 108.0, 148.0]
+        stop_y = p.signal[0] if p.signal else None
+        self.bg, self.bg_shadow, self.objects = render_background(
+            self.cam, self.layout, rng_bg, sun=self.sun, ambient=self.ambient, shadows=self.shadows, night=p.night,
+            exposure=self.exposure, wet=p.rain, stop_line_y=stop_y, lamp_ys=lamp_ys)
+        self.night_lights = p.night or p.dusk
+        self.traffic = Traffic(p, self.layout, self.rng_traffic, lambda c, d: build_shape(
+            c, self.rng_shape, d, light, self.ambient, self.night_lights, self.exposure))
+        self.conditions = Conditions(p, width, height, rng_cond)
+        self.geometry = self._site_geometry()
+        self.truth = TruthAccumulator(
+            [TruthLane(g["id"], g["dir"], tuple(g["region"]), g["count_y"]) for g in self.geometry["lanes"]],
+            [TruthLoop(lp["id"], lp["channel"], lp["lane"], lp["y_m"], lp["length_m"]) for lp in self.geometry["loops"]],
+            period_s=period_s, start_wall=START_WALL)
+        self.traffic.warm_up(WARM_UP_S)
+        self._mask = np.zeros((height, width), np.uint8)
+        self._beam = np.zeros((height, width), np.uint8)
+        self._idbuf = np.zeros((height // 2, width // 2), np.uint16)
+        for o in self.objects:
+            o.mask_half = cv2.resize(o.mask, (max(1, o.mask.shape[1] // 2), max(1, o.mask.shape[0] // 2)),
+                                     interpolation=cv2.INTER_NEAREST) > 0
+
+    @property
+    def t(self) -> float:
+        return self.traffic.t
+
+    # -- site geometry ---------------------------------------------------------------------------------
+    def _site_geometry(self) -> dict:
+        cam, W, H = self.cam, self.cam.width, self.cam.height_px
+        m = 3.0
+        ys = np.arange(1.0, 300.0, 0.25)
+
+        def inside(px: np.ndarray) -> np.ndarray:
+            return (px[:, 0] >= m) & (px[:, 0] <= W - 1 - m) & (px[:, 1] >= m) & (px[:, 1] <= H - 1 - m)
+
+        lanes, loops = [], []
+        for ln in self.layout.lanes:
+            a = cam.road_to_image(np.column_stack([np.full_like(ys, ln.x0), ys]))
+            b = cam.road_to_image(np.column_stack([np.full_like(ys, ln.x1), ys]))
+            ok = inside(a) & inside(b)
+            width_px = np.abs(b[:, 0] - a[:, 0])
+            if not ok.any():
+                raise ValueError(f"lane {ln.id} is not in view; change the camera (pan/tilt/height)")
+            first = int(np.argmax(ok))
+            run = ok[first:] & (width_px[first:] >= 12.0)
+            last = first + (int(np.argmin(run)) - 1 if not run.all() else len(run) - 1)
+            y_lo, y_hi = float(ys[first]), min(float(ys[last]), 220.0)
+            wide = np.nonzero(ok & (width_px >= 20.0))[0]
+            r_hi = min(float(ys[wide[-1]]) if len(wide) else y_hi, y_lo + 100.0, y_hi)
+            region = [round(y_lo + 0.5, 2), round(r_hi, 2)]
+            count_y = round(region[0] + 0.3 * (region[1] - region[0]), 2)
+            lanes.append(dict(id=ln.id, dir=ln.direction, x0=ln.x0, x1=ln.x1,
+                              polygon=[[ln.x0, y_lo], [ln.x1, y_lo], [ln.x1, y_hi], [ln.x0, y_hi]],
+                              region=region, count_y=count_y))
+            loops.append(dict(id=f"L{ln.id}", lane=ln.id, channel=ln.id,
+                              y_m=round(count_y - LOOP_LENGTH_M / 2, 2), length_m=LOOP_LENGTH_M))
+        # calibration: lane boundary points at three distances
+        y_near = max(g["polygon"][0][1] for g in lanes) + 1.0
+        y_far = min(g["polygon"][2][1] for g in lanes)
+        xs = sorted({self.layout.x_min, self.layout.x_max, self.layout.lanes[len(self.layout.lanes) // 2].x0})
+        road, img = [], []
+        for y in (y_near, 0.6 * y_near + 0.4 * y_far, y_far):
+            for x in xs:
+                px = cam.road_to_image(np.array([[x, y]]))[0]
+                if inside(px[None])[0]:
+                    road.append([round(float(x), 3), round(float(y), 3)])
+                    img.append([round(float(px[0]), 3), round(float(px[1]), 3)])
+        # fiducials: static high-texture points well inside the image
+        fid = []
+        for o in sorted(self.objects, key=lambda o: (not o.name.startswith("sign"), not o.name.startswith("lamp"))):
+            for (u, v) in o.fiducials:
+                if 16 <= u <= W - 17 and 16 <= v <= H - 17 and len(fid) < 6:
+                    fid.append([round(float(u), 2), round(float(v), 2)])
+        return dict(lanes=lanes, loops=loops, calibration=dict(image_px=img, road_m=road), fiducials=fid)
+
+    def site_dict(self, url: str, *, name: str | None = None) -> dict:
+        """The site configuration (appliance.config format) for this scene's camera."""
+        g = self.geometry
+        return {
+            "site": {"name": name or f"synthetic {self.preset} seed {self.seed}",
+                     "description": f"roadwatch simulate --preset {self.preset} --seed {self.seed}"},
+            "source": {"url": url, "width": self.cam.width, "height": self.cam.height_px, "fps": self.fps},
+            "calibration": g["calibration"],
+            "lanes": [{"id": ln["id"], "direction": "approaching" if ln["dir"] < 0 else "receding",
+                       "polygon_m": [[round(float(a), 3), round(float(b), 3)] for a, b in ln["polygon"]],
+                       "region_y_m": ln["region"], "count_y_m": ln["count_y"]} for ln in g["lanes"]],
+            "loops": [dict(lp) for lp in g["loops"]],
+            "fiducials": g["fiducials"],
+            "measures": {"period_s": int(self.truth.period_s)},
+        }
+
+    # -- simulation -------------------------------------------------------------------------------------
+    def step(self, dt: float) -> None:
+        """Advance traffic by dt and accumulate the exact truth over the step."""
+        tr = self.traffic
+        t0 = tr.t
+        tr.step(dt)
+        if len(tr.s):
+            d = tr.dirs[tr.lane]
+            y0 = tr.y_start[tr.lane]
+            st = StepState(tr.id, lane_at_x(self.layout, tr.x), lane_at_x(self.layout, tr.x_prev), d,
+                           y0 + d * tr.s_prev, y0 + d * tr.s, tr.length, tr.cls)
+            self.truth.step(t0, tr.t, st)
+        else:
+            self.truth.step(t0, tr.t, StepState(*(np.zeros(0),) * 7, []))
+
+    # -- rendering --------------------------------------------------------------------------------------
+    def render(self, want_truth: bool = True) -> tuple[np.ndarray, list[dict]]:
+        """Draw the current state: (grey image, per-vehicle truth rows without frame/t)."""
+        cam, tr = self.cam, self.traffic
+        img = self.bg.copy()
+        n = len(tr.s)
+        rows: list[dict] = []
+        if n == 0:
+            for o in self.objects:
+                self._paste(img, o)
+            return self.conditions.apply(img, tr.t, self.conditions.offset(tr.t)), rows
+        yf = tr.y_front()
+        d = tr.dirs[tr.lane]
+        lane_ids = lane_at_x(self.layout, tr.x)
+        yc = yf - d * tr.length / 2
+        show = (yc > 2.0) & (yc < 300.0)
+        idx = np.nonzero(show)[0]
+        offs = np.column_stack([tr.x, yf, np.zeros(n)])
+        shapes = [tr.shapes[i] for i in idx]
+        nq = np.array([len(sh.quads) for sh in shapes], dtype=np.int64)
+        npt = np.array([len(sh.corners) for sh in shapes], dtype=np.int64)
+        if len(idx):
+            allq = np.concatenate([sh.quads for sh in shapes]) + np.repeat(offs[idx], nq, axis=0)[:, None, :]
+            alln = np.concatenate([sh.normals for sh in shapes])
+            allv = np.concatenate([sh.values for sh in shapes])
+            corners = np.concatenate([sh.corners for sh in shapes]) + np.repeat(offs[idx], npt, axis=0)
+            qpx, qdep = cam.project(allq)
+            facing = np.einsum("ij,ij->i", alln, allq.mean(axis=1) - cam.centre) < 0
+            facing &= (qdep > 0.5).all(axis=1)
+            qpts = np.round(qpx * 16).astype(np.int32)
+            cpx, cdep = cam.project(corners)
+        q_end, c_end = np.cumsum(nq), np.cumsum(npt)
+        if self.shadows and len(idx):
+            self._mask.fill(0)
+            spx = np.round(cam.road_to_image(shadow_points(corners, self.sun)) * 16).astype(np.int32)
+            for k in range(len(idx)):
+                hull = cv2.convexHull(spx[c_end[k] - npt[k] : c_end[k]])
+                cv2.fillConvexPoly(self._mask, hull, 255, cv2.LINE_8, 4)
+            cv2.copyTo(self.bg_shadow, self._mask, img)
+        if self.night_lights and len(idx):
+            self._beam.fill(0)
+            for k, i in enumerate(idx):
+                w = tr.shapes[i].width / 2
+                y2 = yf[i] + d[i] * 30.0
+                poly = np.array([[tr.x[i] - w, yf[i]], [tr.x[i] + w, yf[i]], [tr.x[i] + w + 2.0, y2], [tr.x[i] - w - 2.0, y2]])
+                if (poly[:, 1] > 3.0).all():
+                    cv2.fillConvexPoly(self._beam, np.round(cam.road_to_image(poly) * 16).astype(np.int32), 45,
+                                       cv2.LINE_8, 4)
+            cv2.add(img, cv2.blur(self._beam, (9, 9)), dst=img)
+        depth = np.hypot(tr.x[idx] - cam.x_m, yc[idx])
+        order = sorted([(float(depth[k]), 0, k) for k in range(len(idx))]
+                       + [(o.depth, 1, j) for j, o in enumerate(self.objects)], reverse=True)
+        if want_truth:
+            self._idbuf.fill(0)
+        hulls = {}
+        for _, kind, k in order:
+            if kind == 1:
+                o = self.objects[k]
+                self._paste(img, o)
+                if want_truth:
+                    y0, x0 = o.y0 // 2, o.x0 // 2
+                    mh = o.mask_half
+                    roi = self._idbuf[y0 : y0 + mh.shape[0], x0 : x0 + mh.shape[1]]
+                    roi[mh[: roi.shape[0], : roi.shape[1]]] = 65535
+                continue
+            a = q_end[k] - nq[k]
+            for qi in np.nonzero(facing[a : q_end[k]])[0] + a:
+                cv2.fillConvexPoly(img, qpts[qi], float(allv[qi]), cv2.LINE_8, 4)
+            if want_truth:
+                c0 = c_end[k] - npt[k]
+                if (cdep[c0 : c_end[k]] <= 0.5).any():
+                    continue
+                px = cpx[c0 : c_end[k]]
+                hull = cv2.convexHull(np.round(px * 8).astype(np.int32))  # half resolution, 4 bits subpixel
+                cv2.fillConvexPoly(self._idbuf, hull, int(k + 1), cv2.LINE_8, 4)
+                hulls[k] = (px, hull)
+        if self.night_lights:
+            self._lights(img, idx, offs, d)
+        dxy = self.conditions.offset(tr.t)
+        out = self.conditions.apply(img, tr.t, dxy)
+        if want_truth:
+            counts = np.bincount(self._idbuf.ravel(), minlength=len(idx) + 1)
+            W, H = cam.width, cam.height_px
+            for k, (px, hull) in hulls.items():
+                x0, y0 = px.min(axis=0) + dxy
+                x1, y1 = px.max(axis=0) + dxy
+                if x1 < 0 or y1 < 0 or x0 > W - 1 or y0 > H - 1:
+                    continue
+                h = hull.astype(np.float64) / 16.0
+                area = cv2.contourArea(h.astype(np.float32)) + 0.5 * cv2.arcLength(h.astype(np.float32), True)
+                i = idx[k]
+                rows.append(dict(
+                    vehicle_id=int(tr.id[i]), **{"class": tr.cls[i]}, lane=int(lane_ids[i]), x_m=float(tr.x[i]),
+                    y_front_m=float(yf[i]), y_rear_m=float(yf[i] - d[i] * tr.length[i]), y_centre_m=float(yc[i]),
+                    speed_mps=float(tr.v[i]), accel_mps2=float(tr.a[i]), length_m=float(tr.length[i]),
+                    bbox_x0=float(max(x0, 0)), bbox_y0=float(max(y0, 0)),
+                    bbox_x1=float(min(x1, W - 1)), bbox_y1=float(min(y1, H - 1)),
+                    visible_frac=float(min(1.0, counts[k + 1] / max(area, 1.0))),
+                ))
+        return out, rows
+
+    def _paste(self, img: np.ndarray, o) -> None:
+        roi = img[o.y0 : o.y0 + o.patch.shape[0], o.x0 : o.x0 + o.patch.shape[1]]
+        cv2.copyTo(o.patch, o.mask, roi)
+
+    def _lights(self, img: np.ndarray, idx: np.ndarray, offs: np.ndarray, d: np.ndarray) -> None:
+        tr, cam = self.traffic, self.cam
+        pts, sizes = [], []
+        for i in idx:
+            sh = tr.shapes[i]
+            if not len(sh.lights):
+                continue
+            facing = sh.light_front if d[i] < 0 else ~sh.light_front  # lights on the face towards the camera
+            L = sh.lights[facing] + offs[i]
+            px, dep = cam.project(L)
+            good = dep > 1.0
+            pts.extend(px[good])
+            base = 9.0 if d[i] < 0 else 4.0
+            sizes.extend(np.clip(base * 25.0 / dep[good], 2, 11))
+        if pts:
+            self.conditions.glare(img, np.array(pts), np.array(sizes))
