@@ -1,6 +1,6 @@
 """Common-motion grouping of features into vehicles (incremental pair graph, connected components).
 
-A pair is linked when first seen together within the connection distance (same lane) and dismissed when
+A pair is linked when first seen together within the connection distance and dismissed when
 its distance range over the common interval exceeds the segmentation threshold (TI/Beymer style).
 """
 
@@ -15,12 +15,17 @@ from appliance.config import TrackingParams
 from appliance.types import VehicleState
 from appliance.zones import SiteZones
 
-UNSEEN, LINKED, APART = 0, 1, 2
+UNSEEN, LINKED, APART, MERGED = 0, 1, 2, 3  # MERGED: a fragment joined to its vehicle for good
+NEAR_REP_M = 3.0  # features this close along the road to the representative one give the velocity
+MIN_TRAVEL_M = 1.0  # a group is reported once it has moved this far (static texture never does)
+MIN_SPEED_MPS = 1.5  # ... and is moving at least this fast (vehicles are found while they move)
+FRAGMENT_X_MARGIN_M = 0.5  # a new group within a known vehicle's extent (plus this) is part of it
 
 
 @njit(cache=True)
 def pair_update(live, s, lane, state, rng, y0, conn_x, conn_y, seg_x, seg_y, seg_rel):
-    """Update the pair graph over the live slots. rng[i, j] = (min dx, max dx, min dy, max dy) of the pair
+    """Update the pair graph over the live slots. Only features born in the same lane may link (side by
+    side vehicles stay apart); a tall vehicle's top seen in the next lane is joined later as a fragment. rng[i, j] = (min dx, max dx, min dy, max dy) of the pair
     distance since linking; y0[i, j] = Y of the lower slot at linking (for the travelled distance)."""
     n = live.shape[0]
     for a in range(n):
@@ -35,7 +40,7 @@ def pair_update(live, s, lane, state, rng, y0, conn_x, conn_y, seg_x, seg_y, seg
             dy = s[j2, 1] - s[i2, 1]
             st = state[i2, j2]
             if st == UNSEEN:
-                if lane[i2] > 0 and lane[j2] > 0 and abs(dx) < conn_x and abs(dy) < conn_y:
+                if lane[i2] == lane[j2] and lane[i2] > 0 and abs(dx) < conn_x and abs(dy) < conn_y:
                     state[i2, j2] = LINKED
                     rng[i2, j2, 0] = dx
                     rng[i2, j2, 1] = dx
@@ -72,7 +77,7 @@ def components(live, state, labels):
                 st = state[i, j]
             else:
                 st = state[j, i]
-            if st == LINKED:
+            if st == LINKED or st == MERGED:
                 ra = a
                 while parent[ra] != ra:
                     ra = parent[ra]
@@ -103,6 +108,8 @@ class VehicleTrack:
     n_max: int = 0
     reported: bool = False
     start_y: float = 0.0
+    x_lo: float = 0.0
+    x_hi: float = 0.0
     last: VehicleState | None = None
     trajectory: list[tuple[float, float, float]] = field(default_factory=list)
 
@@ -122,6 +129,7 @@ class Grouper:
         self.tracks: dict[int, VehicleTrack] = {}
         self.next_vid = 1
         self.finished_total = 0
+        self.foot = zones.camera  # (X, Y, height) of the camera, or None
 
     def reset_slots(self, slots: np.ndarray) -> None:
         """Forget every pair involving slots that now hold new features."""
@@ -154,7 +162,7 @@ class Grouper:
             claimed[vid] = members
         return claimed
 
-    def step(self, t: float, s: np.ndarray, px: np.ndarray, lane: np.ndarray, alive: np.ndarray) -> tuple[list[VehicleState], np.ndarray]:
+    def step(self, t: float, s: np.ndarray, px: np.ndarray, lane: np.ndarray, alive: np.ndarray, age: np.ndarray) -> tuple[list[VehicleState], np.ndarray]:
         """Returns the vehicle states for this frame and the feature slots to retire (finalised vehicles)."""
         p = self.p
         live = np.flatnonzero(alive)
@@ -184,18 +192,40 @@ class Grouper:
             ys = s[members, 1]
             lz = self.zones.by_index(tr.lane_index) if tr.lane_index > 0 else None
             sign = lz.sign if lz is not None else -1
-            y_lo, y_hi = float(ys.min()), float(ys.max())
-            front, rear = (y_lo, y_hi) if sign < 0 else (y_hi, y_lo)
-            if not tr.trajectory:
-                tr.start_y = float(s[rep, 1])
+            length = float(ys.max() - ys.min())
+            rep_y = float(s[rep, 1])
+            # The representative point is the near end: the front of an approaching vehicle, the rear of a
+            # receding one. It never moves backwards (a new lowest feature may move it forwards).
+            if tr.trajectory:
+                prev = tr.trajectory[-1][2]
+                rep_y = min(rep_y, prev) if sign < 0 else max(rep_y, prev)
+            else:
+                tr.start_y = rep_y
+            if sign < 0:
+                front, rear = rep_y, rep_y + length
+            else:
+                front, rear = rep_y + length, rep_y
+            # velocity: median over the settled features near the representative one (the lowest part
+            # of the vehicle; higher features move faster in the road projection)
+            near = members[(np.abs(ys - s[rep, 1]) < NEAR_REP_M) & (age[members] >= 3)]
+            if len(near):
+                vx, vy = float(np.median(s[near, 2])), float(np.median(s[near, 3]))
+            else:
+                vx, vy = float(s[rep, 2]), float(s[rep, 3])
             st = VehicleState(
-                id=vid, t=t, x=float(s[rep, 0]), y_front=front, y_rear=rear, vx=float(s[rep, 2]),
-                vy=float(s[rep, 3]), length=y_hi - y_lo, n_features=int(len(members)),
+                id=vid, t=t, x=float(s[rep, 0]), y_front=front, y_rear=rear, vx=vx,
+                vy=vy, length=length, n_features=int(len(members)),
             )
             tr.last = st
-            tr.trajectory.append((t, st.x, float(s[rep, 1])))
-            if not tr.reported and tr.n_max >= p.min_features and tr.frames >= p.min_track_frames:
-                tr.reported = True
+            tr.x_lo, tr.x_hi = float(s[members, 0].min()), float(s[members, 0].max())
+            tr.trajectory.append((t, st.x, rep_y))
+            moved = abs(rep_y - tr.start_y) >= MIN_TRAVEL_M and abs(vy) >= MIN_SPEED_MPS
+            if not tr.reported and tr.n_max >= p.min_features and tr.frames >= p.min_track_frames and moved:
+                host = self._host_of(tr, st, sign)
+                if host is not None:
+                    self._link(members, groups[host])
+                else:
+                    tr.reported = True
             if lz is not None and lz.in_exit(float(s[rep, 1])):
                 self.tracks.pop(vid)
                 retire.append(members)
@@ -206,6 +236,37 @@ class Grouper:
                 out.append(st)
         slots = np.concatenate(retire) if retire else np.zeros(0, np.int64)
         return out, slots
+
+    def _host_of(self, tr: VehicleTrack, st: VehicleState, sign: int) -> int | None:
+        """A reported vehicle that this new group is a part of: after undoing the height magnification
+        (its projected speed over the vehicle's, k >= 1) the group's near end falls inside the vehicle's
+        footprint. Tall vehicles' tops seen in the next lane, or behind them, are such fragments."""
+        y = tr.trajectory[-1][2]
+        for vid, other in self.tracks.items():
+            o = other.last
+            if vid == tr.id or o is None or o.t != st.t or o.vy * st.vy <= 0:
+                continue
+            if not other.reported and (other.first_t > tr.first_t or other.n_max < tr.n_max):
+                continue
+            k = st.vy / o.vy
+            if not 0.6 <= k <= 2.5:  # young features' speeds are rough
+                continue
+            gx, gy = st.x, y
+            if self.foot is not None and k > 1.05:
+                gx = self.foot[0] + (st.x - self.foot[0]) / k
+                gy = self.foot[1] + (y - self.foot[1]) / k
+            lo, hi = min(o.y_front, o.y_rear) - 1.0, max(o.y_front, o.y_rear) + 1.0
+            m = FRAGMENT_X_MARGIN_M
+            if lo <= gy <= hi and other.x_lo - m <= gx <= other.x_hi + m:
+                return vid
+        return None
+
+    def _link(self, a: np.ndarray, b: np.ndarray) -> None:
+        """Join features a to the vehicle of features b for good."""
+        for i in a:
+            for j in b:
+                i2, j2 = (i, j) if i < j else (j, i)
+                self.state[i2, j2] = MERGED
 
     def _qualifies_on_loss(self, tr: VehicleTrack) -> bool:
         """A vehicle whose features were all lost still counts if it left the detection zone."""

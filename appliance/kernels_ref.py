@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-UNSEEN, LINKED, APART = 0, 1, 2
+UNSEEN, LINKED, APART, MERGED = 0, 1, 2, 3
 
 
 def ncc_ref(img: np.ndarray, tmpl: np.ndarray, cx: int, cy: int) -> float:
@@ -128,7 +128,7 @@ def components_ref(live, state) -> dict[int, int]:
     adj = {i: [] for i in live}
     for a, i in enumerate(live):
         for j in live[a + 1 :]:
-            if state[i, j] == LINKED:
+            if state[i, j] in (LINKED, MERGED):
                 adj[i].append(j)
                 adj[j].append(i)
     label: dict[int, int] = {}

@@ -76,9 +76,12 @@ class VirtualLoop:
         self.now_wall: float | None = None
 
     def update(
-        self, vid: int, in_lane: bool, prev: tuple | None, cur: tuple, offset: float
+        self, vid: int, in_lane: bool, prev: tuple | None, cur: tuple, offset: float, was_in_lane: bool = True
     ) -> LoopEvent | None:
-        """Advance one vehicle by one step. prev/cur = (t, lo, hi, speed, length); offset = wall - t."""
+        """Advance one vehicle by one step. prev/cur = (t, lo, hi, speed, length); offset = wall - t.
+
+        A vehicle that came into the lane during the step (lane change) is on from the step's end.
+        """
         t1, lo1, hi1, v1, len1 = cur
         if prev is None:
             t0, lo0, hi0 = t1, lo1, hi1
@@ -90,7 +93,7 @@ class VirtualLoop:
         if p is None:
             if span is None:
                 return None
-            t_on = t0 + span[0] * dt
+            t_on = t0 + span[0] * dt if was_in_lane else t1
             p = self.active[vid] = _Presence(t_on, t_on + offset)
             self.on_times[vid] = t_on
             self.count += 1

@@ -50,7 +50,8 @@ class _Track:
     lane_raw: int | None
     speeds: list[float] = field(default_factory=list)
     lengths: list[float] = field(default_factory=list)
-    counted_lane: int | None = None
+    counted_lane: int | None = None  # lane of its first count-line crossing
+    counted: set = field(default_factory=set)  # lanes whose count line it crossed (staggered lines)
     trajectory: list[tuple[float, float, float]] = field(default_factory=list)
 
 
@@ -76,6 +77,7 @@ class TrafficMeasures:
         m = site.measures
         self.period_s = float(m.period_s)
         self.lanes = LaneMap(site)
+        self.lanes.lanes_at(np.zeros(1), np.zeros(1))  # compile (or load) the kernel before the first frame
         self.count_y = {lane.id: float(lane.count_y_m) for lane in site.lanes}
         self.region = {lane.id: (float(lane.region_y_m[0]), float(lane.region_y_m[1])) for lane in site.lanes}
         self.edie = EdieAccumulator(self.lanes.ids, self.region, self.period_s)
@@ -117,10 +119,17 @@ class TrafficMeasures:
             lp.now_wall = wall
         seg_lane, seg_w0, seg_w1, seg_y0, seg_y1 = [], [], [], [], []
         seen = set()
+        todo: list[VehicleState] = []
+        for v in vehicles:
+            todo.extend(_states_of(v) if v.id not in self.tracks else [v])
+        raws = self.lanes.lanes_at(np.array([s.x for s in todo]), np.array([s.y_front for s in todo]))
+        k = 0
         for v in vehicles:
             seen.add(v.id)
             for s in _states_of(v) if v.id not in self.tracks else [v]:
-                seg = self._advance(s, offset, out)
+                raw = int(raws[k]) or None
+                k += 1
+                seg = self._advance(s, raw, offset, out)
                 if seg is not None:
                     seg_lane.append(seg[0]); seg_w0.append(seg[1]); seg_w1.append(seg[2])
                     seg_y0.append(seg[3]); seg_y1.append(seg[4])
@@ -138,9 +147,9 @@ class TrafficMeasures:
             out.periods.extend(self._complete(p, partial=p in self.partial_periods))
         return out
 
-    def _advance(self, v: VehicleState, offset: float, out: MeasureUpdate):
-        """Move one vehicle to state v; returns its Edie segment (lane, w0, w1, y0, y1) or None."""
-        raw = self.lanes.lane_at(v.x, v.y_front)
+    def _advance(self, v: VehicleState, raw: int | None, offset: float, out: MeasureUpdate):
+        """Move one vehicle to state v (in lane ``raw`` by position); returns its Edie segment
+        (lane, w0, w1, y0, y1) or None."""
         tr = self.tracks.get(v.id)
         speed = abs(v.vy)
         if tr is None:
@@ -160,7 +169,9 @@ class TrafficMeasures:
         cur = (v.t, lo, hi, speed, v.length)
         pl = None if prev is None else (prev[0], min(prev[2], prev[3]), max(prev[2], prev[3]))
         for lp in self.loops:
-            ev = lp.update(v.id, raw == lp.cfg.lane, pl, cur, offset)
+            if lp.cfg.lane != raw and v.id not in lp.active:
+                continue  # neither in this loop's lane nor on it
+            ev = lp.update(v.id, raw == lp.cfg.lane, pl, cur, offset, was_in_lane=tr.lane_raw == lp.cfg.lane)
             if ev is not None:
                 out.loop_events.append(ev)
         tr.prev = (v.t, v.x, v.y_front, v.y_rear, speed)
@@ -168,7 +179,7 @@ class TrafficMeasures:
         if prev is None:
             return None
         seg_lane = raw if raw is not None else lane
-        if tr.counted_lane is None and seg_lane is not None:
+        if seg_lane is not None and seg_lane not in tr.counted:
             self._check_crossing(v, prev, seg_lane, offset, tr, out)
         if seg_lane is None:
             return None
@@ -188,8 +199,12 @@ class TrafficMeasures:
         tc = prev[0] + s * (v.t - prev[0])
         speed = (prev[4] + s * (abs(v.vy) - prev[4])) * 3.6
         x = prev[1] + s * (v.x - prev[1])
-        lane_c = self.lanes.lane_at(x, c) or lane
-        tr.counted_lane = lane_c
+        lane_c = int(self.lanes.lanes_at(np.array([x]), np.array([c]))[0]) or lane
+        if lane_c in tr.counted:
+            return
+        tr.counted.add(lane_c)
+        if tr.counted_lane is None:
+            tr.counted_lane = lane_c
         cr = Crossing(v.id, lane_c, tc, tc + offset, speed, v.length, self.count_y[lane_c])
         self.crossings[lane_c].append(cr)
         out.crossings.append(cr)

@@ -128,7 +128,7 @@ class VisionPipeline:
         if self.prev is not None and dt > 0:
             self._detect(img, dt, frame.t)
         c3 = time.perf_counter()
-        states, retire = self.grouper.step(frame.t, tr.s, tr.px, tr.lane, tr.alive)
+        states, retire = self.grouper.step(frame.t, tr.s, tr.px, tr.lane, tr.alive, tr.age)
         if len(retire):
             tr.kill(retire)
         c4 = time.perf_counter()

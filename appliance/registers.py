@@ -3,6 +3,7 @@ DetectorSnapshot into discrete-input bits and input-register words (no I/O)."""
 
 from __future__ import annotations
 
+import functools
 import math
 import re
 from dataclasses import dataclass, field
@@ -47,6 +48,7 @@ NTCIP_FAULTS: list[tuple[HealthFault, int, str]] = [
 FAILSAFE_FAULTS = (HealthFault.CAMERA_LOST, HealthFault.FROZEN_IMAGE, HealthFault.OVERLOAD)
 
 
+@functools.cache
 def firmware_version() -> tuple[int, int, int]:
     try:
         parts = metadata.version("roadwatch").split(".")
@@ -271,12 +273,9 @@ def encode_snapshot(snapshot: DetectorSnapshot, layout: Layout) -> RegisterImage
 def _encode_period(ir: np.ndarray, snapshot: DetectorSnapshot, layout: Layout) -> None:
     ir[PERIOD] = snapshot.period_seq & 0xFF
     by_lane = {agg.lane: agg for agg in snapshot.last_period}
-    for slot in range(MAX_LANES):
-        base = LANES + slot * LANE_STRIDE
-        ir[base + 1 : base + 12] = NO_DATA
-        ir[base + 4] = 0
-        ir[base + 10] = 0
-        ir[base + 11] = 0
+    slots = ir[LANES : LANES + MAX_LANES * LANE_STRIDE].reshape(MAX_LANES, LANE_STRIDE)  # a view
+    slots[:, 1:10] = NO_DATA
+    slots[:, 4] = 0
     if not by_lane:
         return
     first = next(iter(by_lane.values()))

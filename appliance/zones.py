@@ -104,6 +104,7 @@ class SiteZones:
                     exit_px=_poly_px(H, poly, *ext),
                 )
             )
+        self.camera = camera_from_homography(H, self.width, self.height)
         self.lane_image = self._paint("polygon_px")  # 0 = no lane, else LaneZones.index
         self.detection_image = self._paint("detection_px")
         ys, xs = np.nonzero(self.detection_image)
@@ -139,3 +140,32 @@ class SiteZones:
 
     def by_index(self, index: int) -> LaneZones:
         return self.lanes[index - 1]
+
+
+def camera_from_homography(H: Homography, width: int, height: int) -> tuple[float, float, float] | None:
+    """Camera foot (X, Y) on the road and height (m), assuming square pixels and the principal point at
+    the image centre. None when the homography does not fit a pinhole camera above the road."""
+    cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
+    A = np.array([[1, 0, -cx], [0, 1, -cy], [0, 0, 1]], dtype=np.float64) @ H.Hinv
+    a1, a2, a3 = A[:, 0], A[:, 1], A[:, 2]
+    den = a1[2] * a2[2]
+    f2 = -(a1[0] * a2[0] + a1[1] * a2[1]) / den if abs(den) > 1e-15 else -1.0
+    if not np.isfinite(f2) or f2 <= 0:
+        d = a2[2] ** 2 - a1[2] ** 2
+        f2 = (a1[0] ** 2 + a1[1] ** 2 - a2[0] ** 2 - a2[1] ** 2) / d if abs(d) > 1e-15 else -1.0
+    if not np.isfinite(f2) or f2 <= 0:
+        return None
+    Kinv = np.diag([1 / np.sqrt(f2), 1 / np.sqrt(f2), 1.0])
+    b1, b2, b3 = Kinv @ a1, Kinv @ a2, Kinv @ a3
+    lam = np.sqrt(np.linalg.norm(b1) * np.linalg.norm(b2))
+    r1, r2 = b1 / np.linalg.norm(b1), b2 / np.linalg.norm(b2)
+    r3 = np.cross(r1, r2)
+    t = b3 / lam
+    R = np.column_stack([r1, r2, r3])
+    C = -R.T @ t
+    if C[2] < 0:  # the other sign of lambda
+        C = -R.T @ (-t)
+        C[2] = abs(C[2])
+    if not np.all(np.isfinite(C)) or C[2] <= 0.5:
+        return None
+    return float(C[0]), float(C[1]), float(C[2])

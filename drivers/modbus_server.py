@@ -160,6 +160,8 @@ class _ModbusOutput:
     def start(self, commands: CommandSink) -> None:
         """Start serving in a background thread; returns once listening (raises if it cannot)."""
         self.store.commands = commands
+        self._started.clear()
+        self._error = None
         self._thread = threading.Thread(target=self._run, name=f"roadwatch-{self.name.rsplit('.', 1)[-1]}", daemon=True)
         self._thread.start()
         if not self._started.wait(15.0):
@@ -194,19 +196,13 @@ class _ModbusOutput:
         server = self._make_server()
         server.context = self.store  # serve the live register image (see DESIGN.md pymodbus notes)
         self._server = server
-        await server.serve_forever(background=True)
-        if self._error is None and not self._listening(server):
-            raise RuntimeError("could not open the port")
+        await server.serve_forever(background=True)  # raises when it cannot listen / open the port
         self._started.set()
         beat = asyncio.create_task(self._heartbeat())
         try:
             await server.serving
         finally:
             beat.cancel()
-
-    @staticmethod
-    def _listening(server) -> bool:
-        return server.transport is not None
 
     async def _heartbeat(self) -> None:
         loop = asyncio.get_running_loop()
@@ -234,11 +230,6 @@ class ModbusTcpOutput(_ModbusOutput):
         cfg = self.site.outputs.modbus_tcp
         return ModbusTcpServer(_placeholder(), framer=FramerType.SOCKET, address=(cfg.host, cfg.port),
                                trace_packet=_ExceptionFixer(rtu=False))
-
-    @property
-    def port(self) -> int:
-        sock = self._server.transport.sockets[0] if self._server and self._server.transport else None
-        return sock.getsockname()[1] if sock else self.site.outputs.modbus_tcp.port
 
 
 class ModbusRtuOutput(_ModbusOutput):

@@ -61,6 +61,10 @@ def newell_traffic(seconds: float, seed: int = 1, y0: float = 60.0, y1: float = 
     return out
 
 
+def _length_class(length: float) -> str:
+    return "small" if length < 6.1 else ("medium" if length < 13.1 else "large")
+
+
 def fill_store(path, seconds: float = 1200.0, seed: int = 1, period_s: int = 300, trajectories: bool = True) -> dict:
     """Write vehicles, loop events and Edie period aggregates of ``newell_traffic`` into a real
     Store. Returns the written aggregates by (lane, period_start) for the tests to compare."""
@@ -78,7 +82,7 @@ def fill_store(path, seconds: float = 1200.0, seed: int = 1, period_s: int = 300
                 continue
             speed = float((y[0] - y[-1]) / (t[-1] - t[0]) * 3.6)
             recs.append(VehicleRecord(vid, lane, START + t[0], START + t[-1], speed, length,
-                                      "small" if length < 6.1 else ("medium" if length < 13.1 else "large"), 0,
+                                      _length_class(length), 0,
                                       [(float(a), 0.0, float(b)) for a, b in zip(t, y)]))
             on = np.flatnonzero(y <= 21.8)
             if len(on):
@@ -94,7 +98,8 @@ def fill_store(path, seconds: float = 1200.0, seed: int = 1, period_s: int = 300
             dist = tim = 0.0
             count = 0
             speeds = []
-            for t, y, _ in vehicles:
+            classes: dict[str, int] = {}
+            for t, y, length in vehicles:
                 m = (t >= p0) & (t < p0 + period_s) & (y >= region[0]) & (y <= region[1])
                 if m.sum() >= 2:
                     dist += float(y[m].max() - y[m].min())
@@ -102,6 +107,8 @@ def fill_store(path, seconds: float = 1200.0, seed: int = 1, period_s: int = 300
                 c = np.flatnonzero((y[:-1] > 30.0) & (y[1:] <= 30.0))
                 if len(c) and p0 <= t[c[0]] < p0 + period_s:
                     count += 1
+                    cls = _length_class(length)
+                    classes[cls] = classes.get(cls, 0) + 1
                     speeds.append(float((y[c[0]] - y[c[0] + 1]) / (t[c[0] + 1] - t[c[0]]) * 3.6))
             area = L * period_s
             occ = sum(e.t_off - e.t_on for e in events if p0 <= e.t_on < p0 + period_s) / period_s * 100
@@ -111,7 +118,7 @@ def fill_store(path, seconds: float = 1200.0, seed: int = 1, period_s: int = 300
                 speed_kmh=dist / tim * 3.6 if tim else None,
                 time_mean_speed_kmh=float(np.mean(speeds)) if speeds else None,
                 occupancy_pct=occ, speed85_kmh=float(np.percentile(speeds, 85)) if speeds else None,
-                headway_s=period_s / count if count else None, class_counts={"small": count},
+                headway_s=period_s / count if count else None, class_counts=classes,
                 partial=p0 == 0.0, quality=0)
             aggs.append(a)
             written[(lane, START + p0)] = a

@@ -78,6 +78,17 @@ def test_lane_lines_need_points_for_the_along_road_scale() -> None:
         fit_homography(Correspondences([], [], lines))
 
 
+def test_two_lane_lines_and_three_points_are_refused() -> None:
+    # all X constraints then lie on 2 lines of one pencil: the horizon is free (1 dof missing)
+    lines = [LaneLine(TRUE.road_to_img([[x, 12.0], [x, 40.0]]).tolist(), x) for x in (-3.5, 3.5)]
+    pts = [[-3.5, 12.0], [3.5, 45.0], [-3.5, 30.0]]
+    with pytest.raises(ValueError, match="do not fix the horizon"):
+        fit_homography(Correspondences(TRUE.road_to_img(pts).tolist(), pts, lines))
+    pts.append([3.5, 20.0])  # a 4th point fixes it
+    H = fit_homography(Correspondences(TRUE.road_to_img(pts).tolist(), pts, lines))
+    assert np.allclose(H.H, TRUE.H, atol=1e-6 * np.abs(TRUE.H).max())
+
+
 def test_lane_line_cli_with_lane_width(tmp_path) -> None:
     site = _write_site(tmp_path)
     args = ["calibrate", "-c", str(site), "--lane-width", "3.5", "--first-line-x", "-3.5", "--json"]
@@ -107,6 +118,16 @@ def test_warnings_outlier_mirror_and_refusal_to_write(tmp_path) -> None:
     mirrored = [p.split("=")[0] + f"={-float(p.split('=')[1].split(',')[0])},{p.split('=')[1].split(',')[1]}" for p in pts]
     res = CliRunner().invoke(cli, ["calibrate", "-c", str(site)] + _flat("--point", mirrored))
     assert res.exit_code == 0 and "mirror-flipped" in res.output
+
+
+def test_nearly_collinear_points_are_warned_and_collinear_refused() -> None:
+    thin = [[-0.1, 12.0], [0.1, 20.0], [-0.1, 30.0], [0.1, 40.0], [0.0, 47.0]]  # a 0.2 m wide strip
+    corr = Correspondences(TRUE.road_to_img(thin).tolist(), thin)
+    res = check(fit_homography(corr), corr, (640, 480))
+    assert any("nearly on one line" in w for w in res.warnings)
+    line = [[0.0, y] for y in (12.0, 20.0, 30.0, 40.0)]
+    with pytest.raises(ValueError, match="collinear"):
+        fit_homography(Correspondences(TRUE.road_to_img(line).tolist(), line))
 
 
 def test_horizon_through_a_zone_is_warned() -> None:
@@ -176,3 +197,23 @@ def test_real_clip_calibration_from_hand_marked_points(tmp_path, shared_data) ->
     assert img.shape == (240, 320, 3) and img.std() > 20  # drawn on the real frame, not on a blank
     saved = tomllib.loads(p.read_text())
     assert saved["calibration"]["image_px"] == cal["image_px"]  # no --write: untouched
+
+
+def test_first_install_workflow_from_an_empty_site(tmp_path) -> None:
+    # only the source is known: calibrate --write gives a draft (no lanes yet), then zones
+    # complete it; at no step is a valid config replaced by an invalid one
+    site = tmp_path / "site.toml"
+    site.write_text(tomli_w.dumps({"source": {"url": "synthetic:free-flow", "width": 640, "height": 480}}))
+    r = CliRunner()
+    res = r.invoke(cli, ["calibrate", "-c", str(site), "--write", "--url", "http://127.0.0.1:9"] + _flat("--point", _points(ROAD)))
+    assert res.exit_code == 0, res.output
+    assert "not complete yet" in res.output
+    assert len(tomllib.loads(site.read_text())["calibration"]["image_px"]) == len(ROAD)
+    res = r.invoke(cli, ["zones", "lane", "1", "-c", str(site), "--polygon-m", "-3.5,12 0,12 0,48 -3.5,48",
+                         "--url", "http://127.0.0.1:9"])
+    assert res.exit_code == 0, res.output
+    assert load_site(site).lane(1).direction == "approaching"
+    assert not (tmp_path / "site.toml.last-good").exists()  # there was no good config before
+    res = r.invoke(cli, ["zones", "remove", "lane", "1", "-c", str(site), "--url", "http://127.0.0.1:9"])
+    assert res.exit_code != 0 and "lanes" in res.output  # a good config never goes back to a draft
+    assert load_site(site).lane(1)

@@ -58,8 +58,18 @@ def test_snapshot_from_real_image_sequence(tmp_path, shared_data) -> None:
     res = CliRunner().invoke(cli, ["snapshot", "-c", str(site), "-o", str(out), "--overlay"])
     assert res.exit_code == 0, res.output
     img = cv2.imread(str(out)).astype(int)
-    u, v = 60, 225  # inside lane 1 near the image bottom (polygon_px of counts.json)
-    assert img[v, u, 1] > img[v, u, 0] + 20 and img[v, u, 1] > img[v, u, 2] + 20
+    raw = cv2.cvtColor(frame(0), cv2.COLOR_GRAY2BGR).astype(int)
+    greenness = (img[:, :, 1] - (img[:, :, 0] + img[:, :, 2]) / 2) - (raw[:, :, 1] - (raw[:, :, 0] + raw[:, :, 2]) / 2)
+    lanes = np.zeros((240, 320), np.uint8)
+    for ln in counts["lanes"]:
+        cv2.fillPoly(lanes, [np.round(np.asarray(ln["polygon_px"])).astype(np.int32)], 255)
+    inside = cv2.erode(lanes, np.ones((7, 7), np.uint8)) > 0
+    outside = cv2.dilate(lanes, np.ones((7, 7), np.uint8)) == 0
+    # lane fill: green added (35 % of (0, 200, 0) blended in) on most interior pixels; outlines,
+    # zone outlines, loops and labels cover the rest
+    assert np.median(greenness[inside]) > 40
+    # outside the lanes the frame is unchanged apart from labels and fiducial marks
+    assert np.mean(np.abs(greenness[outside]) < 2) > 0.97
 
 
 def test_snapshot_errors_are_clear(tmp_path) -> None:
@@ -72,3 +82,37 @@ def test_snapshot_errors_are_clear(tmp_path) -> None:
     assert not (tmp_path / "x.png").exists()
     res = CliRunner().invoke(cli, ["snapshot", "-c", str(tmp_path / "missing.toml")])
     assert res.exit_code != 0 and "missing.toml" in res.output
+
+
+def test_snapshot_works_before_calibration(tmp_path, shared_data) -> None:
+    # the installer's first step: only [source] is filled in, the rest of the config is missing
+    p = tmp_path / "new.toml"
+    p.write_text(tomli_w.dumps({"source": {"url": f"images:{shared_data / 'cdnet-highway' / 'input' / 'in%06d.jpg'}",
+                                           "width": 320, "height": 240}}))
+    out = tmp_path / "first.png"
+    res = CliRunner().invoke(cli, ["snapshot", "-c", str(p), "-o", str(out)])
+    assert res.exit_code == 0, res.output
+    assert cv2.imread(str(out)).shape == (240, 320, 3)
+    res = CliRunner().invoke(cli, ["snapshot", "-c", str(p), "-o", str(out), "--overlay"])
+    assert res.exit_code != 0 and "calibration" in res.output
+
+
+def test_status_table_shows_faults_calls_and_last_period() -> None:
+    from tools.fieldtool.status import format_status
+
+    st = {"site": "s", "version": "0.1.0", "uptime_s": 90061, "fps": 24.9, "dropped_frames": 3, "frames": 1000,
+          "faults": ["CAMERA_LOST"], "fault_bits": 1, "tracked_vehicles": 2, "period_seq": 7,
+          "channels": [{"channel": 1, "loop_id": "L1", "lane": 1, "call": True, "count": 65535, "occupancy_pct": 12.5,
+                        "last_speed_kmh": 88.2, "last_length_m": 4.4, "class_counts": {"small": 3}, "forced": True},
+                       {"channel": 2, "loop_id": "L2", "lane": 2, "call": False, "count": 0, "occupancy_pct": 0.0,
+                        "last_speed_kmh": None, "last_length_m": None, "class_counts": {}, "forced": False}],
+          "lanes": {"1": 4, "2": 0},
+          "last_period": [{"lane": 1, "period_start": 1767225600.0, "period_s": 300.0, "count": 61, "flow_vph": 732.0,
+                           "density_vpkm": 8.1, "speed_kmh": 90.4, "occupancy_pct": 9.2, "speed85_kmh": 97.0,
+                           "partial": True}]}
+    text = format_status(st)
+    assert "up 1d 01:01:01" in text and "FAULT CAMERA_LOST" in text
+    assert "  1 L1          1 FORCED   65535   12.5   88.2    4.4  small:3" in text
+    assert "  2 L2          2 .            0    0.0      -      -" in text
+    assert "last period 2026-01-01T00:00:00Z (300.0 s)" in text and "partial" in text
+    assert "lane 1: 4  lane 2: 0" in text

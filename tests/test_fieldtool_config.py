@@ -72,12 +72,29 @@ def test_apply_never_replaces_good_with_bad(tmp_path) -> None:
     new = site_dict()
     new["site"]["name"] = "renamed"
     newp = _write(tmp_path / "new.toml", new)
+    newp.write_text("# installer's note: lane 2 re-striped 2026-01\n" + newp.read_text())
     res = CliRunner().invoke(cli, ["config", "apply", str(newp), "-c", str(target)] + NO_SERVICE)
     assert res.exit_code == 0, res.output
     assert "~ site.name" in res.output and "not running" in res.output
     assert tomllib.loads(target.read_text())["site"]["name"] == "renamed"
+    assert target.read_text().startswith("# installer's note")  # written verbatim, comments kept
     assert (tmp_path / "config.toml.last-good").read_bytes() == good_bytes
     assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.toml", "config.toml", "config.toml.last-good", "new.toml"]
+    res = CliRunner().invoke(cli, ["config", "apply", str(newp), "-c", str(tmp_path / "nodir" / "config.toml"), "--force"]
+                             + NO_SERVICE)
+    assert res.exit_code == 1 and "cannot write" in res.output and "nodir" in res.output
+
+
+def test_validate_warns_about_a_missing_source_file(tmp_path) -> None:
+    d = site_dict()
+    d["source"]["url"] = "clips/cam.mp4"
+    p = _write(tmp_path / "site.toml", d)
+    res = CliRunner().invoke(cli, ["config", "validate", str(p)])
+    assert res.exit_code == 0 and "WARNING" in res.output and "cam.mp4" in res.output
+    (tmp_path / "clips").mkdir()
+    (tmp_path / "clips" / "cam.mp4").write_bytes(b"")
+    res = CliRunner().invoke(cli, ["config", "validate", str(p)])
+    assert "WARNING" not in res.output
 
 
 def test_atomic_write_keeps_old_content_on_failure(tmp_path) -> None:

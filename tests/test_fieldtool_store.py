@@ -81,6 +81,11 @@ def test_report_pngs_show_the_data(store, tmp_path) -> None:
     # matplotlib's tab:blue (lane 1) and tab:orange (lane 2) lines are drawn
     for bgr in ((180, 119, 31), (14, 127, 255)):
         assert (np.abs(img.astype(int) - bgr).sum(axis=2) < 30).sum() > 200
+    bars = cv2.imread(str(out / "counts_by_class.png"))
+    # stacked bars: the small, medium and large classes each have their colour (tab:blue,
+    # tab:orange, tab:green in sorted class order large, medium, small)
+    for bgr in ((180, 119, 31), (14, 127, 255), (44, 160, 44)):
+        assert (np.abs(bars.astype(int) - bgr).sum(axis=2) < 30).sum() > 100
     ts = cv2.imread(str(out / "time_space.png"), cv2.IMREAD_GRAYSCALE)
     # trajectories: many dark, steep strokes. In 60 s at ~750 veh/h per lane there are ~12
     # vehicles per lane; count dark runs along a row through the middle of the top panel.

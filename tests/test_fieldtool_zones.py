@@ -6,6 +6,7 @@ import tomllib
 
 import cv2
 import numpy as np
+import pytest
 import tomli_w
 from click.testing import CliRunner
 
@@ -129,6 +130,16 @@ def test_lane_outside_image_and_zone_edits(tmp_path) -> None:
     assert new["lanes"][1]["detection_y_m"] == [40.0, 48.0]
     res = r.invoke(cli, ["zones", "fiducials", "-c", str(tmp_path / "new.toml"), "320,300"] + NO_SERVICE)
     assert res.exit_code == 0 and "fiducial F1" in res.output and "is on lane" in res.output
+
+
+def test_zone_from_image_rows(tmp_path) -> None:
+    site = _site_file(tmp_path)
+    cfg = load_site(site)
+    v_far, v_near = cfg.homography.road_to_img([[1.75, 44.0], [1.75, 36.0]])[:, 1]
+    res = CliRunner().invoke(cli, ["zones", "lane", "2", "-c", str(site), "--detection-rows", str(v_far), str(v_near)]
+                             + NO_SERVICE)
+    assert res.exit_code == 0, res.output
+    assert load_site(site).lane(2).detection_y_m == pytest.approx([36.0, 44.0], abs=0.02)
 
 
 def test_check_lists_channels(tmp_path) -> None:

@@ -201,3 +201,21 @@ def test_flush_gives_partial_current_period():
     flushed = tm.flush(EPOCH + 100)
     assert len(flushed) == 2 and all(p.partial for p in flushed)
     assert flushed[0].count == tm.live_lane_counts()[1] > 0
+
+
+def test_lane_kernel_matches_reference():
+    from appliance.lanes import LaneMap
+
+    site = make_site(lanes=[
+        {"id": 1, "direction": "approaching", "polygon_m": [[-5, 10], [0, 10], [0, 100], [-5, 100]]},
+        {"id": 2, "direction": "approaching", "polygon_m": [[0, 0], [5, 0], [4, 100], [0, 100]]},
+    ])
+    lm = LaneMap(site)
+    rng = np.random.default_rng(5)
+    xs, ys = rng.uniform(-9, 9, 4000), rng.uniform(-5, 105, 4000)
+    got = lm.lanes_at(xs, ys)
+    ref = np.array([lm.lane_at(x, y) or 0 for x, y in zip(xs, ys)])
+    np.testing.assert_array_equal(got, ref)
+    assert set(np.unique(ref)) == {0, 1, 2}  # all three outcomes were exercised
+    # lane 1 ends at y = 10: a lane-1 vehicle below that end is still in lane 1, not lane 2
+    assert lm.lanes_at(np.array([-2.5]), np.array([8.0]))[0] == 1

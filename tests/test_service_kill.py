@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import random
 import sqlite3
+import threading
 import time
 from pathlib import Path
 
@@ -35,47 +36,83 @@ def _dump(db: Path) -> dict:
     return out
 
 
-def _run_to_end(cfg: Path, timeout: float = 120) -> str:
-    p = start("run", "--config", str(cfg))
-    _, err = p.communicate(timeout=timeout)
-    assert p.returncode == 0, err[-3000:]
-    return err
+class _Run:
+    """The service as a subprocess, its stderr collected by a thread; ``ready`` is set when it
+    logs that it is ready, ``ready_at`` / ``ended_at`` are monotonic times."""
+
+    def __init__(self, cfg: Path):
+        self.proc = start("run", "--config", str(cfg))
+        self.lines: list[str] = []
+        self.ready = threading.Event()
+        self.ready_at = self.ended_at = None
+        self._t = threading.Thread(target=self._read, daemon=True)
+        self._t.start()
+
+    def _read(self) -> None:
+        for line in self.proc.stderr:
+            self.lines.append(line)
+            if "ready:" in line and not self.ready.is_set():
+                self.ready_at = time.monotonic()
+                self.ready.set()
+        self.ended_at = time.monotonic()
+
+    def wait(self, timeout: float = 120) -> int:
+        rc = self.proc.wait(timeout=timeout)
+        self._t.join(timeout=10)
+        self.proc.stdout.close()
+        return rc
+
+    @property
+    def err(self) -> str:
+        return "".join(self.lines)
 
 
-def _kill_series(cfg: Path, kills: int, window: tuple[float, float], seed: int) -> tuple[int, int]:
-    """Start/SIGKILL the service `kills` times, then let it finish. Returns (kills, resumes seen)."""
+def _run_to_end(cfg: Path) -> _Run:
+    r = _Run(cfg)
+    assert r.wait() == 0, r.err[-3000:]
+    return r
+
+
+def _kill_series(cfg: Path, kills: int, processing_s: float, seed: int) -> tuple[int, int]:
+    """Start/SIGKILL the service `kills` times, then let it finish. A quarter of the kills land
+    in start-up (random delay after spawn), the rest at a random moment of processing (random
+    delay after it is ready, up to a clean run's processing time). Returns (kills, resumes)."""
     rng = random.Random(seed)
     done, resumed = 0, 0
     while done < kills:
-        p = start("run", "--config", str(cfg))
-        time.sleep(rng.uniform(*window))
-        if p.poll() is None:
-            p.kill()
+        r = _Run(cfg)
+        if rng.random() < 0.25:
+            time.sleep(rng.uniform(0.05, 1.0))
+        else:
+            r.ready.wait(60)
+            time.sleep(rng.uniform(0.0, processing_s))
+        if r.proc.poll() is None:
+            r.proc.kill()
             done += 1
-        _, err = p.communicate(timeout=30)
-        resumed += "resuming after frame" in err
-        if p.returncode == 0:  # it finished before the kill: start over from an empty store
+        rc = r.wait(30)
+        resumed += "resuming after frame" in r.err
+        if rc == 0:  # it finished before the kill: start over from an empty store
             for f in cfg.parent.glob("store.sqlite*"):
                 f.unlink()
-    err = _run_to_end(cfg)
-    resumed += "resuming after frame" in err
+    r = _run_to_end(cfg)
+    resumed += "resuming after frame" in r.err
     return done, resumed
 
 
-def _check(tmp_path: Path, shared_data: Path, frames: int, period_s: int, kills: int,
-           window: tuple[float, float], seed: int) -> None:
+def _check(tmp_path: Path, shared_data: Path, frames: int, period_s: int, kills: int, seed: int) -> None:
     ref_dir, kill_dir = tmp_path / "ref", tmp_path / "kill"
     ref_dir.mkdir()
     kill_dir.mkdir()
     ref_cfg = cdnet_site(ref_dir, shared_data, frames=frames, period_s=period_s)
     kill_cfg = cdnet_site(kill_dir, shared_data, frames=frames, period_s=period_s)
-    _run_to_end(ref_cfg)
+    clean = _run_to_end(ref_cfg)
+    processing_s = clean.ended_at - clean.ready_at
     ref = _dump(ref_dir / "store.sqlite")
     complete = int((frames - 1) / FPS // period_s)  # the last period ends after the last frame
     assert len([r for r in ref["periods"] if not r[12]]) == 2 * complete  # two lanes
     assert sum(r[3] for r in ref["periods"]) > 0, "the clean run counted no vehicles"
 
-    n, resumed = _kill_series(kill_cfg, kills, window, seed)
+    n, resumed = _kill_series(kill_cfg, kills, processing_s, seed)
     got = _dump(kill_dir / "store.sqlite")
     assert n == kills
     # at least some restarts must have resumed from a checkpoint, else resume went untested
@@ -87,13 +124,13 @@ def _check(tmp_path: Path, shared_data: Path, frames: int, period_s: int, kills:
 
 
 def test_sigkill_restart_keeps_every_period_exactly_once(tmp_path, shared_data) -> None:
-    # 300 frames (12 s) with 2 s periods: a checkpoint every ~0.5 s of processing, so kills
-    # between 0.3 and 3 s after start land before start-up, mid-period and after checkpoints.
+    # 300 frames (12 s) with 2 s periods: a checkpoint every 50 frames, so kills land in
+    # start-up, mid-period and just after checkpoints.
     seed = random.randrange(1 << 30)
-    _check(tmp_path, shared_data, frames=300, period_s=2, kills=20, window=(0.3, 3.0), seed=seed)
+    _check(tmp_path, shared_data, frames=300, period_s=2, kills=20, seed=seed)
 
 
 @pytest.mark.slow
 def test_sigkill_many_times_on_the_whole_clip(tmp_path, shared_data) -> None:
     seed = random.randrange(1 << 30)
-    _check(tmp_path, shared_data, frames=1700, period_s=5, kills=60, window=(0.3, 6.0), seed=seed)
+    _check(tmp_path, shared_data, frames=1700, period_s=5, kills=60, seed=seed)

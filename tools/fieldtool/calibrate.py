@@ -8,7 +8,6 @@ from pathlib import Path
 import click
 import numpy as np
 
-from appliance.config import ConfigError, SiteConfig, SourceConfig, parse_site
 from appliance.geometry import CalibrationError
 from tools.fieldtool.calibration_fit import (
     Correspondences,
@@ -18,7 +17,7 @@ from tools.fieldtool.calibration_fit import (
     parse_point,
     read_points_file,
 )
-from tools.fieldtool.common import config_option, url_option, write_png
+from tools.fieldtool.common import config_option, source_only_config, url_option, write_png
 from tools.fieldtool.config_cmd import install_config
 
 
@@ -34,15 +33,13 @@ def _raw_config(path: str) -> dict:
         raise click.ClickException(f"{p}: cannot be read as TOML ({e})") from None
 
 
-def _source_only(raw: dict, path: str) -> SiteConfig:
-    """A SiteConfig holding just the source section (enough to grab a frame)."""
-    try:
-        src = SourceConfig(**raw.get("source", {}))
-    except TypeError as e:
-        raise click.ClickException(f"{path}: bad [source] section ({e})") from None
-    cfg = SiteConfig(source=src)
-    cfg.path = path
-    return cfg
+def _read_image(path: str) -> np.ndarray:
+    import cv2
+
+    img = cv2.imread(path, cv2.IMREAD_COLOR)
+    if img is None:
+        raise click.ClickException(f"{path}: not a readable image")
+    return img
 
 
 def _zones_px(raw: dict, path: str, H) -> list[np.ndarray]:
@@ -83,15 +80,16 @@ def calibrate(config_path, points_file, points, lane_lines, lane_width, first_li
     """Fit the image -> road homography, report the error in metres per point, draw a grid.
 
     Road metres: X across the road (growing to the right in the image), Y along the road
-    (growing away from the camera). At least 4 points, or 3 points plus lane lines.
+    (growing away from the camera). At least 4 points, or 3 points plus lane lines at 3 or more X.
 
     \b
     Examples:
       roadwatch calibrate --points marks.csv --grid grid.png --snapshot snap.png
       roadwatch calibrate --point 130,217=0,0 --point 252,217=3.66,0 \\
           --point 160,160=0,12.2 --point 258,160=3.66,12.2 --write
-      roadwatch calibrate --lane-width 3.66 --lane-line "130,217 204,79" \\
-          --lane-line "252,217 265,79" --point 130,217=0,0 --point 160,160=0,12.2 --point 262,98=3.66,36.6
+      roadwatch calibrate --lane-line "0,214 177,40=-3.94" --lane-line "130,217 204,79=0" \\
+          --lane-line "252,217 265,79=3.66" \\
+          --point 130,217=0,0 --point 160,160=0,12.2 --point 262,98=3.66,36.6
     """
     raw = _raw_config(config_path)
     corr = Correspondences()
@@ -122,6 +120,9 @@ def calibrate(config_path, points_file, points, lane_lines, lane_width, first_li
 
     src = raw.get("source", {})
     size = (int(src.get("width", 640)), int(src.get("height", 480)))
+    if not raw and snapshot:  # no config yet: the snapshot gives the image size
+        h, w = _read_image(snapshot).shape[:2]
+        size = (w, h)
     limit = float(raw.get("calibration", {}).get("max_error_m", 0.5))
     result = check(H, corr, size, _zones_px(raw, config_path, H), max_point_error_m=limit)
 
@@ -152,8 +153,11 @@ def calibrate(config_path, points_file, points, lane_lines, lane_width, first_li
         road = np.asarray(result.road_m, float)
         gx = grid_x or (float(np.floor(road[:, 0].min())) - 1, float(np.ceil(road[:, 0].max())) + 1)
         gy = grid_y or (float(np.floor(road[:, 1].min())), float(np.ceil(road[:, 1].max())))
-        img = base_image(_source_only(raw, config_path), snapshot) if (snapshot or raw) else None
-        if img is None:
+        if raw:
+            img = base_image(source_only_config(config_path), snapshot)
+        elif snapshot:
+            img = _read_image(snapshot)
+        else:
             from tools.fieldtool.overlay import blank
 
             img = blank(*size)
@@ -173,7 +177,7 @@ def calibrate(config_path, points_file, points, lane_lines, lane_width, first_li
         cal["image_px"] = [[round(float(a), 3) for a in p] for p in result.image_px]
         cal["road_m"] = [[round(float(a), 4) for a in p] for p in result.road_m]
         data["calibration"] = cal
-        res = install_config(config_path, data, url, reload)
+        res = install_config(config_path, data, url, reload, draft_ok=True)
         if not as_json:
             for line in res.lines(config_path):
                 click.echo(line)

@@ -80,6 +80,10 @@ def fit_homography(corr: Correspondences) -> Homography:
         raise CalibrationError(
             "lane lines fix only X; give at least 3 points (not all at one road Y) for the scale along the road"
         )
+    if len(img) < 4 and len({round(ln.x_m, 3) for ln in corr.lines}) < 3:
+        raise CalibrationError(
+            "lane lines at fewer than 3 different X do not fix the horizon: add a lane line or use 4 or more points"
+        )
     n_eq = 2 * len(img) + sum(len(lp) for lp in line_px)
     if n_eq < 8:
         raise CalibrationError(f"too few constraints: {n_eq} equations, a homography needs 8")

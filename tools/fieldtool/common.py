@@ -10,7 +10,7 @@ from pathlib import Path
 
 import click
 
-from appliance.config import DEFAULT_CONFIG_PATH, ConfigError, SiteConfig, load_site, parse_site
+from appliance.config import DEFAULT_CONFIG_PATH, ConfigError, SiteConfig, SourceConfig, load_site, parse_site
 
 CONFIG_ENV = "ROADWATCH_CONFIG"
 
@@ -102,7 +102,15 @@ def write_png(path: str | Path, image) -> None:
     ok, buf = cv2.imencode(".png", image)
     if not ok:
         raise click.ClickException(f"{path}: could not encode the PNG")
-    atomic_write(path, buf.tobytes())
+    write_file(path, buf.tobytes())
+
+
+def write_file(path: str | Path, data: bytes | str) -> None:
+    """atomic_write with OS errors turned into a ClickException naming the file."""
+    try:
+        atomic_write(path, data)
+    except OSError as e:
+        raise click.ClickException(f"{path}: cannot write ({e.strerror or e})") from None
 
 
 def parse_when(text: str) -> float:
@@ -171,3 +179,18 @@ def parse_polygon(text: str, what: str = "polygon") -> list[list[float]]:
     if len(pts) < 3:
         raise click.BadParameter(f"{what}: needs at least 3 points 'x,y x,y x,y', got {len(pts)}")
     return pts
+
+
+def source_only_config(path: str | Path) -> SiteConfig:
+    """A SiteConfig with just the file's [source] section: enough to grab a frame from a site
+    that is not calibrated yet (the full config would not validate)."""
+    raw = read_toml(path)
+    src = raw.get("source", {})
+    if not isinstance(src, dict):
+        raise click.ClickException(f"{path}: source: expected a table")
+    try:
+        cfg = SiteConfig(source=SourceConfig(**src))
+    except TypeError as e:
+        raise click.ClickException(f"{path}: bad [source] section ({e})") from None
+    cfg.path = str(path)
+    return cfg

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import difflib
 import json
-import os
-import shutil
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -13,9 +11,9 @@ from pathlib import Path
 import click
 import tomli_w
 
-from appliance.config import ConfigError, parse_site, to_dict
-from tools.fieldtool.common import atomic_write, config_option, load_config, read_toml, service_url, url_option
-from tools.fieldtool.statusclient import ServiceError, ServiceUnreachable, StatusClient
+from appliance.config import ConfigError, SiteConfig, load_site, parse_site, to_dict
+from tools.fieldtool.common import config_option, load_config, read_toml, service_url, url_option, write_file
+from tools.fieldtool.statusclient import ServiceError, ServiceTimeout, ServiceUnreachable, StatusClient
 
 LAST_GOOD_SUFFIX = ".last-good"
 
@@ -34,48 +32,83 @@ class ApplyResult:
         return out
 
 
-def install_config(target: str | Path, data: dict, url: str | None = None, reload: bool = True) -> ApplyResult:
+def preflight(cfg: SiteConfig) -> list[str]:
+    """Problems the schema cannot see: a file source that does not exist, a missing store directory."""
+    base = Path(cfg.path).parent if cfg.path else Path.cwd()
+    url = cfg.source.url
+    out = []
+    kind = url.split(":", 1)[0] if ":" in url and not url.startswith("/") else "file"
+    if kind == "images":
+        d = (base / url[len("images:"):]).parent
+        if not d.is_dir():
+            out.append(f"source.url: image directory {str(d)!r} does not exist")
+    elif kind == "file" and not url.startswith("/dev/"):
+        f = base / url
+        if not f.is_file():
+            out.append(f"source.url: video file {str(f)!r} does not exist")
+    store_dir = (base / cfg.store.path).parent
+    if not store_dir.is_dir():
+        out.append(f"store.path: directory {str(store_dir)!r} does not exist")
+    return out
+
+
+def _is_good(path: Path) -> bool:
+    try:
+        parse_site(tomllib.loads(path.read_text(encoding="utf-8")), str(path))
+        return True
+    except (ConfigError, tomllib.TOMLDecodeError, UnicodeDecodeError, OSError):
+        return False
+
+
+def install_config(target: str | Path, data: dict, url: str | None = None, reload: bool = True,
+                   text: str | None = None, draft_ok: bool = False) -> ApplyResult:
     """Validate ``data``, keep the current good config as TARGET.last-good, write TARGET
-    atomically, and ask the running service at ``url`` to reload.
+    atomically (``text`` verbatim if given, so comments survive; else ``data`` as TOML), and
+    ask the running service at ``url`` to reload.
 
     Raises click.ClickException (target untouched) when ``data`` is invalid. When the service
-    rejects the new file, the previous good file is put back.
+    rejects the new file, the previous good file is put back. With ``draft_ok``, a site being
+    set up (TARGET not a valid config yet) may be written while it still has no lanes.
     """
     target = Path(target)
+    good = target.exists() and _is_good(target)
     # relative paths in the config (store.path, file sources) are resolved against TARGET's dir
     try:
         parse_site(data, str(target))
+        draft = None
     except ConfigError as e:
-        raise click.ClickException(f"not applied, the config is invalid: {e}") from None
-    text = tomli_w.dumps(data)
+        if not (draft_ok and not good and e.key == "lanes" and not data.get("lanes")):
+            raise click.ClickException(f"not applied, the config is invalid: {e}") from None
+        draft = e.problem
+    text = tomli_w.dumps(data) if text is None else text
+    running_url = service_url(url, str(target))  # where the service runs now (the old [status])
     backup = None
-    if target.exists():
-        try:
-            parse_site(tomllib.loads(target.read_text(encoding="utf-8")), str(target))
-            good = True
-        except (ConfigError, tomllib.TOMLDecodeError, UnicodeDecodeError):
-            good = False
-        if good:
-            backup = str(target) + LAST_GOOD_SUFFIX
-            atomic_write(backup, target.read_bytes())
-    atomic_write(target, text)
+    if good:
+        backup = str(target) + LAST_GOOD_SUFFIX
+        write_file(backup, target.read_bytes())
+    write_file(target, text)
+    if draft is not None:
+        return ApplyResult(True, backup, f"not reloaded: the site is not complete yet (lanes: {draft}); "
+                                         "add lanes with `roadwatch zones lane`")
     if not reload:
         return ApplyResult(True, backup, "reload skipped (--no-reload)")
-    client = StatusClient(service_url(url, str(target)))
+    client = StatusClient(running_url)
     try:
         msg = client.reload()
         return ApplyResult(True, backup, f"reloaded ({client.url}){': ' + msg if msg else ''}")
+    except ServiceTimeout as e:
+        return ApplyResult(True, backup, f"reload requested, but {e}; check with `roadwatch status`")
     except ServiceUnreachable:
         return ApplyResult(True, backup, f"not running at {client.url}; the new config is used at the next start")
     except ServiceError as e:
         if e.status == 400 and backup:
-            atomic_write(target, Path(backup).read_bytes())
+            write_file(target, Path(backup).read_bytes())
             raise click.ClickException(
                 f"the service rejected the new config ({e.message}); it keeps running the old one and "
                 f"{target} was restored from {backup}"
             ) from None
         if e.status == 403:
-            return ApplyResult(True, backup, f"reload refused (status.allow_commands is off); restart the service to use it")
+            return ApplyResult(True, backup, "reload refused (status.allow_commands is off); restart the service to use it")
         raise click.ClickException(f"written, but the reload failed: {e}") from None
 
 
@@ -132,13 +165,13 @@ def validate(files: tuple[str, ...], config_path: str) -> None:
     bad = 0
     for f in files or (config_path,):
         try:
-            from appliance.config import load_site
-
             cfg = load_site(f)
         except ConfigError as e:
             click.echo(f"INVALID {e}", err=True)
             bad += 1
             continue
+        for problem in preflight(cfg):
+            click.echo(f"WARNING {f}: {problem}", err=True)
         click.echo(
             f"ok {f}: site {cfg.site.name!r}, {len(cfg.lanes)} lanes, {len(cfg.loops)} loops "
             f"(channels {sorted(cfg.loop_by_channel()) or '-'}), source {cfg.source.url}"
@@ -197,7 +230,8 @@ def diff(new: str, old: str | None, config_path: str, text: bool) -> None:
 @config_option
 @url_option
 @click.option("--reload/--no-reload", default=True, show_default=True, help="Ask the running service to reload.")
-def apply(new: str, config_path: str, url: str | None, reload: bool) -> None:
+@click.option("--force", is_flag=True, help="Apply even if the source file or store directory is missing.")
+def apply(new: str, config_path: str, url: str | None, reload: bool, force: bool) -> None:
     """Install NEW as the config: validate, keep the last good one, write atomically, reload.
 
     A config that does not validate, or that the running service rejects, never replaces
@@ -210,8 +244,15 @@ def apply(new: str, config_path: str, url: str | None, reload: bool) -> None:
     data = read_toml(new)
     if Path(new).resolve() == Path(config_path).resolve():
         raise click.ClickException("NEW is the installed config itself; edit a copy and apply that")
+    try:
+        # paths in the file are relative to where it will be installed
+        problems = preflight(parse_site(data, str(config_path)))
+    except ConfigError as e:
+        raise click.ClickException(f"not applied, the config is invalid: {e}") from None
+    if problems and not force:
+        raise click.ClickException("not applied: " + "; ".join(problems) + " (--force to apply anyway)")
     for line in diff_configs(read_toml(config_path), data) if Path(config_path).exists() else []:
         click.echo(line)
-    result = install_config(config_path, data, url, reload)
+    result = install_config(config_path, data, url, reload, text=Path(new).read_text(encoding="utf-8"))
     for line in result.lines(config_path):
         click.echo(line)

@@ -10,7 +10,7 @@ import time
 
 import click
 
-from tools.fieldtool.common import When, atomic_write, config_option, iso
+from tools.fieldtool.common import When, config_option, iso, write_file
 from tools.fieldtool.storeaccess import open_readonly, store_path
 
 TIME_COLUMNS = {"periods": "period_start", "loop-events": "wall_on", "vehicles": "wall_exit"}
@@ -76,7 +76,7 @@ def export(t_from, t_to, lane, what, fmt, trajectories, out, db, config_path) ->
         store.close()
     text = json.dumps(rows, indent=1) + "\n" if fmt == "json" else to_csv(rows)
     if out:
-        atomic_write(out, text)
+        write_file(out, text)
         click.echo(f"wrote {len(rows)} {what} rows to {out}", err=True)
     else:
         sys.stdout.write(text)

@@ -84,16 +84,15 @@ def loop_polygons_px(cfg: SiteConfig) -> dict[str, np.ndarray]:
 
 
 def zone_polygons_px(cfg: SiteConfig, kind: str) -> dict[int, np.ndarray]:
-    """Detection ("detection_y_m") or exit ("exit_y_m") zones that are set, per lane, in pixels."""
-    H = cfg.homography
+    """Effective detection ("detection") or exit ("exit") zone per lane, in pixels: the
+    configured range, or the default the service derives from the lane's direction."""
+    from appliance.zones import SiteZones
+
     out = {}
-    for lane in cfg.lanes:
-        rng = getattr(lane, f"{kind}_y_m")
-        if rng is None:
-            continue
-        poly = clip_polygon_y(np.asarray(lane.polygon_m), rng[0], rng[1])
+    for lz in SiteZones(cfg).lanes:
+        poly = lz.detection_px if kind == "detection" else lz.exit_px
         if len(poly) >= 3:
-            out[lane.id] = H.road_to_img(poly)
+            out[lz.lane_id] = np.asarray(poly, dtype=np.float64)
     return out
 
 

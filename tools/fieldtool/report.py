@@ -10,7 +10,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from tools.fieldtool.common import When, atomic_write, config_option, iso
+from tools.fieldtool.common import When, config_option, iso, write_file
 from tools.fieldtool.storeaccess import open_readonly, store_path
 
 LANE_COLOURS = ["tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:gray"]
@@ -23,7 +23,7 @@ def _utc(ts) -> list[datetime]:
 def _save(fig, path: Path) -> None:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=100)
-    atomic_write(path, buf.getvalue())
+    write_file(path, buf.getvalue())
 
 
 def plot_periods(periods: list[dict], title: str, path: Path) -> None:
@@ -65,6 +65,41 @@ def plot_periods(periods: list[dict], title: str, path: Path) -> None:
     plt.close(fig)
 
 
+def plot_counts(periods: list[dict], title: str, path: Path) -> None:
+    """Vehicles per period, one panel per lane, bars stacked by length class."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.dates as mdates
+    import matplotlib.pyplot as plt
+
+    lanes = sorted({p["lane"] for p in periods})
+    classes = sorted({c for p in periods for c in (p["class_counts"] or {})})
+    fig, axes = plt.subplots(len(lanes), 1, figsize=(10, 2.6 * len(lanes) + 1.0), sharex=True, squeeze=False)
+    for ax, lane in zip(axes[:, 0], lanes):
+        rows = [p for p in periods if p["lane"] == lane]
+        starts = _utc([p["period_start"] for p in rows])
+        width = rows[0]["period_s"] / 86400.0 * 0.85  # bar width in days (matplotlib date units)
+        bottom = np.zeros(len(rows))
+        for j, cls in enumerate(classes):
+            n = np.array([(p["class_counts"] or {}).get(cls, 0) for p in rows], dtype=float)
+            ax.bar(starts, n, width=width, bottom=bottom, align="edge", label=cls, color=LANE_COLOURS[j % len(LANE_COLOURS)])
+            bottom += n
+        other = np.array([p["count"] for p in rows], dtype=float) - bottom
+        if (other > 0).any():
+            ax.bar(starts, np.clip(other, 0, None), width=width, bottom=bottom, align="edge", label="unclassified", color="0.6")
+        ax.set_ylabel(f"lane {lane}\nvehicles / period")
+        ax.grid(alpha=0.3, axis="y")
+    axes[0, 0].legend(loc="upper right", ncols=max(1, len(classes) + 1), fontsize=8)
+    axes[-1, 0].xaxis.set_major_formatter(mdates.DateFormatter("%m-%d %H:%M", tz=timezone.utc))
+    axes[-1, 0].set_xlabel("period start (UTC)")
+    fig.suptitle(title)
+    fig.autofmt_xdate()
+    fig.tight_layout()
+    _save(fig, path)
+    plt.close(fig)
+
+
 def trajectory_lines(vehicles: list[dict]) -> dict[int, list[tuple[np.ndarray, np.ndarray]]]:
     """Per lane, (wall times, Y positions) of every vehicle with a stored trajectory.
 
@@ -84,8 +119,28 @@ def trajectory_lines(vehicles: list[dict]) -> dict[int, list[tuple[np.ndarray, n
     return out
 
 
+def site_marks(config_path: str) -> dict[int, list[tuple[str, float, float]]]:
+    """Per lane, (label, y0, y1) of its loops and count line from the config, if it loads."""
+    from pathlib import Path as _P
+
+    from appliance.config import ConfigError, load_site
+
+    if not _P(config_path).is_file():
+        return {}
+    try:
+        cfg = load_site(config_path)
+    except ConfigError:
+        return {}
+    marks: dict[int, list] = {}
+    for lane in cfg.lanes:
+        marks.setdefault(lane.id, []).append(("count", lane.count_y_m, lane.count_y_m))
+    for lp in cfg.loops:
+        marks.setdefault(lp.lane, []).append((f"{lp.id} ch{lp.channel}", lp.y_m, lp.y_m + lp.length_m))
+    return marks
+
+
 def plot_time_space(vehicles: list[dict], title: str, path: Path, t_start: float | None = None,
-                    seconds: float | None = None) -> int:
+                    seconds: float | None = None, marks: dict | None = None) -> int:
     """Time-space diagram per lane: distance along the road (Y) against time, over
     [t_start, t_start + seconds) (default: all). Returns the number of trajectories drawn."""
     import matplotlib
@@ -107,6 +162,13 @@ def plot_time_space(vehicles: list[dict], title: str, path: Path, t_start: float
         for wall, y in lines[lane]:
             ax.plot(wall - t0, y, "-", color="k", lw=0.8)
             n += 1
+        for label, y0, y1 in (marks or {}).get(lane, []):
+            if y1 > y0:
+                ax.axhspan(y0, y1, color="tab:red", alpha=0.25, lw=0)
+            else:
+                ax.axhline(y0, color="tab:orange", ls="--", lw=1)
+            ax.annotate(label, (1.0, y1), xycoords=("axes fraction", "data"), xytext=(3, 0),
+                        textcoords="offset points", fontsize=7, va="center")
         ax.set_ylabel(f"lane {lane}\ndistance Y (m)")
         ax.grid(alpha=0.3)
         if seconds is not None:
@@ -133,8 +195,8 @@ def plot_time_space(vehicles: list[dict], title: str, path: Path, t_start: float
 def report(t_from, t_to, out_dir, lane, ts_seconds, ts_from, db, config_path) -> None:
     """Plot flow/speed/occupancy per lane over time and a time-space diagram of trajectories.
 
-    Writes OUT/flow_speed_occupancy.png and, when trajectories are stored
-    (store.trajectories = true), OUT/time_space.png.
+    Writes OUT/flow_speed_occupancy.png, OUT/counts_by_class.png and, when trajectories
+    are stored (store.trajectories = true), OUT/time_space.png.
 
     \b
     Example:
@@ -151,7 +213,7 @@ def report(t_from, t_to, out_dir, lane, ts_seconds, ts_from, db, config_path) ->
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     span = f"{iso(t_from)} .. {iso(t_to)}"
-    steps = ["periods", "trajectories"]
+    steps = ["periods", "counts", "trajectories"]
     written = []
     with click.progressbar(steps, label="plotting", file=click.get_text_stream("stderr")) as bar:
         for step in bar:
@@ -161,11 +223,17 @@ def report(t_from, t_to, out_dir, lane, ts_seconds, ts_from, db, config_path) ->
                 p = out / "flow_speed_occupancy.png"
                 plot_periods(periods, f"Per-lane measures {span}", p)
                 written.append(f"{p}: {len(periods)} lane-periods")
+            elif step == "counts":
+                if not periods:
+                    continue
+                p = out / "counts_by_class.png"
+                plot_counts(periods, f"Vehicles per period by length class {span}", p)
+                written.append(f"{p}: {sum(x['count'] for x in periods)} vehicles")
             elif trajectory_lines(vehicles):
                 p = out / "time_space.png"
                 ts0 = t_from if ts_from is None else ts_from
                 n = plot_time_space(vehicles, f"Time-space diagram from {iso(ts0)} ({ts_seconds:g} s)", p,
-                                    ts0, ts_seconds)
+                                    ts0, ts_seconds, site_marks(config_path))
                 written.append(f"{p}: {n} trajectories")
     if not periods:
         click.echo(f"no periods in the store for {span}", err=True)

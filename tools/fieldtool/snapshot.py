@@ -11,8 +11,8 @@ import click
 import cv2
 import numpy as np
 
-from appliance.config import SiteConfig
-from tools.fieldtool.common import atomic_write, config_option, load_config, service_url, url_option, write_png
+from appliance.config import ConfigError, SiteConfig, load_site
+from tools.fieldtool.common import config_option, service_url, source_only_config, url_option, write_file, write_png
 from tools.fieldtool.overlay import blank, draw_site
 from tools.fieldtool.statusclient import ServiceError, ServiceUnreachable, StatusClient
 
@@ -153,10 +153,15 @@ def snapshot(config_path: str, out: str, from_service: bool, url: str | None, ov
             png = client.snapshot_png(overlay=overlay)
         except (ServiceError, ServiceUnreachable) as e:
             raise click.ClickException(f"snapshot from the service failed: {e}") from None
-        atomic_write(out, png)
+        write_file(out, png)
         click.echo(f"wrote {out} ({len(png)} bytes) from {client.url}")
         return
-    cfg = load_config(config_path)
+    try:
+        cfg = load_site(config_path)
+    except ConfigError as e:
+        if overlay or e.key == "file":
+            raise click.ClickException(f"invalid config: {e}") from None
+        cfg = source_only_config(config_path)  # not calibrated yet: the source is enough
     click.echo(f"reading a frame from {cfg.source.url} ...", err=True)
     try:
         img = grab_frame(cfg, skip)

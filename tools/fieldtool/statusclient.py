@@ -19,6 +19,10 @@ class ServiceUnreachable(Exception):
     """Nothing answers at the status URL."""
 
 
+class ServiceTimeout(ServiceUnreachable):
+    """The service accepted the connection (or was slow to) but did not answer in time."""
+
+
 class StatusClient:
     """GET /api/status, /api/snapshot.png; POST /api/force-call, /api/reload."""
 
@@ -26,18 +30,24 @@ class StatusClient:
         self.url = url.rstrip("/")
         self.timeout = timeout
 
-    def _request(self, method: str, path: str, body: dict | None = None) -> tuple[int, bytes]:
+    def _request(self, method: str, path: str, body: dict | None = None,
+                 timeout: float | None = None) -> tuple[int, bytes]:
         data = json.dumps(body).encode() if body is not None else None
         req = urllib.request.Request(self.url + path, data=data, method=method)
         if data is not None:
             req.add_header("Content-Type", "application/json")
+        timeout = self.timeout if timeout is None else timeout
         try:
-            with urllib.request.urlopen(req, timeout=self.timeout) as resp:
+            with urllib.request.urlopen(req, timeout=timeout) as resp:
                 return resp.status, resp.read()
         except urllib.error.HTTPError as e:
             raw = e.read()
             raise ServiceError(e.code, _message(raw) or e.reason) from None
-        except (urllib.error.URLError, ConnectionError, TimeoutError, OSError) as e:
+        except TimeoutError:
+            raise ServiceTimeout(f"{self.url}{path} did not answer within {timeout:g} s") from None
+        except (urllib.error.URLError, ConnectionError, OSError) as e:
+            if isinstance(getattr(e, "reason", None), TimeoutError):
+                raise ServiceTimeout(f"{self.url}{path} did not answer within {timeout:g} s") from None
             reason = getattr(e, "reason", e)
             raise ServiceUnreachable(f"no service answers at {self.url} ({reason})") from None
 
@@ -58,8 +68,9 @@ class StatusClient:
         _, raw = self._request("POST", "/api/force-call", {"channel": channel, "seconds": seconds})
         return _message(raw)
 
-    def reload(self) -> str:
-        _, raw = self._request("POST", "/api/reload", {})
+    def reload(self, timeout: float = 90.0) -> str:
+        """Ask the service to re-read its config; it may rebuild (and compile) the pipeline first."""
+        _, raw = self._request("POST", "/api/reload", {}, timeout=timeout)
         return _message(raw)
 
 

@@ -10,7 +10,6 @@ import numpy as np
 from appliance.config import SiteConfig
 from appliance.geometry import polygon_contains
 from tools.fieldtool.common import (
-    atomic_write,
     config_option,
     load_config,
     parse_polygon,
@@ -18,6 +17,7 @@ from tools.fieldtool.common import (
     read_toml,
     url_option,
     validate_dict,
+    write_file,
     write_png,
 )
 from tools.fieldtool.config_cmd import install_config
@@ -54,15 +54,21 @@ def zone_warnings(cfg: SiteConfig) -> list[str]:
 
 
 def summary(cfg: SiteConfig) -> list[str]:
+    from appliance.zones import SiteZones
+
     lines = []
     lanes_px = lane_polygons_px(cfg)
+    eff = {lz.lane_id: lz for lz in SiteZones(cfg).lanes}
     for lane in cfg.lanes:
+        lz = eff[lane.id]
+        det = f"{lz.detection_y[0]:.1f}..{lz.detection_y[1]:.1f} m" + ("" if lane.detection_y_m else " (default)")
+        ext = f"{lz.exit_y[0]:.1f}..{lz.exit_y[1]:.1f} m" + ("" if lane.exit_y_m else " (default)")
         poly = np.asarray(lane.polygon_m)
         lines.append(
             f"lane {lane.id} {lane.direction}: X {poly[:, 0].min():.1f}..{poly[:, 0].max():.1f} m, "
             f"Y {poly[:, 1].min():.1f}..{poly[:, 1].max():.1f} m, image rows "
             f"{lanes_px[lane.id][:, 1].min():.0f}..{lanes_px[lane.id][:, 1].max():.0f}; "
-            f"count at Y {lane.count_y_m:.1f} m; detection {lane.detection_y_m or 'default'}; exit {lane.exit_y_m or 'default'}"
+            f"count at Y {lane.count_y_m:.1f} m; detection {det}; exit {ext}"
         )
     loops_px = loop_polygons_px(cfg)
     for lp in sorted(cfg.loops, key=lambda x: x.channel):
@@ -118,17 +124,32 @@ def _save(config_path: str, data: dict, out_config: str | None, url: str | None,
         cfg = validate_dict(data, str(Path(out_config)))
         import tomli_w
 
-        atomic_write(out_config, tomli_w.dumps(data))
+        write_file(out_config, tomli_w.dumps(data))
         click.echo(f"wrote {out_config}")
     else:
-        for line in install_config(config_path, data, url, reload).lines(config_path):
+        for line in install_config(config_path, data, url, reload, draft_ok=True).lines(config_path):
             click.echo(line)
+        if not data.get("lanes"):
+            return  # a site still being set up: nothing to check or draw yet
         cfg = load_config(config_path)
     for w in zone_warnings(cfg):
         click.echo(f"WARNING: {w}", err=True)
     if render_png:
         render(cfg, snapshot, render_png)
         click.echo(f"wrote {render_png}")
+
+
+def rows_to_y(config_path: str, lane_id: int, rows: tuple[float, float]) -> tuple[float, float]:
+    """Two image rows -> the along-road range they cut from the lane (at the lane's centre column)."""
+    cfg = load_config(config_path)
+    try:
+        lane = cfg.lane(lane_id)
+    except KeyError:
+        raise click.UsageError(f"--*-rows need lane {lane_id} to exist first (give its polygon)") from None
+    H = cfg.homography
+    cx = float(H.road_to_img(np.asarray(lane.polygon_m))[:, 0].mean())
+    ys = H.img_to_road([[cx, rows[0]], [cx, rows[1]]])[:, 1]
+    return float(round(ys.min(), 2)), float(round(ys.max(), 2))
 
 
 def _range(value: tuple[float, float] | None) -> list[float] | None:
@@ -142,11 +163,14 @@ def _range(value: tuple[float, float] | None) -> list[float] | None:
 @click.option("--polygon-m", help="Lane outline in road metres: 'x,y x,y x,y ...'.")
 @click.option("--detection-y", type=(float, float), default=None, help="Detection zone Y0 Y1 (m) along the lane.")
 @click.option("--exit-y", type=(float, float), default=None, help="Exit zone Y0 Y1 (m) along the lane.")
+@click.option("--detection-rows", type=(float, float), default=None,
+              help="Detection zone as two image rows (pixels), converted to Y at the lane's centre.")
+@click.option("--exit-rows", type=(float, float), default=None, help="Exit zone as two image rows (pixels).")
 @click.option("--region-y", type=(float, float), default=None, help="Edie measurement region Y0 Y1 (m).")
 @click.option("--count-y", type=float, default=None, help="Count position Y (m).")
 @_edit_options
-def lane_cmd(lane_id, direction, polygon_px, polygon_m, detection_y, exit_y, region_y, count_y,
-             config_path, url, reload, snapshot, render_png, out_config) -> None:
+def lane_cmd(lane_id, direction, polygon_px, polygon_m, detection_y, exit_y, detection_rows, exit_rows, region_y,
+             count_y, config_path, url, reload, snapshot, render_png, out_config) -> None:
     """Add lane LANE_ID or change what is given of it.
 
     \b
@@ -155,6 +179,9 @@ def lane_cmd(lane_id, direction, polygon_px, polygon_m, detection_y, exit_y, reg
     """
     if polygon_px and polygon_m:
         raise click.UsageError("give --polygon-px or --polygon-m, not both")
+    if detection_rows or exit_rows:
+        detection_y = rows_to_y(config_path, lane_id, detection_rows) if detection_rows else detection_y
+        exit_y = rows_to_y(config_path, lane_id, exit_rows) if exit_rows else exit_y
     data = read_toml(config_path)
     lanes = data.setdefault("lanes", [])
     lane = next((x for x in lanes if x.get("id") == lane_id), None)
@@ -191,7 +218,7 @@ def lane_cmd(lane_id, direction, polygon_px, polygon_m, detection_y, exit_y, reg
 @_edit_options
 def loop_cmd(loop_id, lane, channel, y_m, length_m, polygon_px, polygon_m, mode, trap_with,
              config_path, url, reload, snapshot, render_png, out_config) -> None:
-    """Add loop LOOP_ID or change it, e.g. assign it to another controller channel.
+    """Add loop LOOP_ID or change it (lane, channel, position, mode, speed trap).
 
     \b
     Examples:

@@ -12,8 +12,8 @@ from tools.simulate.road import RoadLayout
 from tools.simulate.vehicles import _Builder
 
 MAP_X = (-32.0, 32.0)
-MAP_Y = (-5.0, 520.0)
-SX, SY = 24.0, 10.0  # texture map pixels per metre across / along
+MAP_Y = (-5.0, 420.0)
+SX, SY = 24.0, 8.0  # texture map pixels per metre across / along
 DASH, GAP = 3.0, 9.0  # lane-line dashes (m)
 
 
@@ -42,19 +42,19 @@ def _road_map(layout: RoadLayout, rng: np.random.Generator, stop_line_y: float |
     w = int((MAP_X[1] - MAP_X[0]) * SX)
     X = MAP_X[0] + (np.arange(w) + 0.5) / SX
     Y = MAP_Y[0] + (np.arange(h) + 0.5) / SY
-    img = 78.0 + _lowfreq(rng, (h, w), (160, 24), 14.0) + rng.normal(0, 13.0, (h, w)).astype(np.float32)
+    img = 78.0 + _lowfreq(rng, (h, w), (160, 24), 14.0) + 13.0 * rng.standard_normal((h, w), dtype=np.float32)
     grass_tufts = _lowfreq(rng, (h, w), (900, 160), 9.0)
     img += grass_tufts
     x_lo, x_hi = layout.x_min - 0.8, layout.x_max + 0.8
     c0, c1 = int((x_lo - MAP_X[0]) * SX), int((x_hi - MAP_X[0]) * SX)
-    asphalt = 100.0 + _lowfreq(rng, (h, c1 - c0), (120, 6), 7.0) + rng.normal(0, 9.0, (h, c1 - c0)).astype(np.float32)
+    asphalt = 100.0 + _lowfreq(rng, (h, c1 - c0), (120, 6), 7.0) + 9.0 * rng.standard_normal((h, c1 - c0), dtype=np.float32)
     if wet:
         asphalt = 0.7 * asphalt + 10
     img[:, c0:c1] = asphalt
     # gravel shoulders
     for xs in ((layout.x_min - 2.0, layout.x_min - 0.8), (layout.x_max + 0.8, layout.x_max + 2.0)):
         a, b = int((xs[0] - MAP_X[0]) * SX), int((xs[1] - MAP_X[0]) * SX)
-        img[:, a:b] = 125.0 + rng.normal(0, 16.0, (h, b - a))
+        img[:, a:b] = 125.0 + 16.0 * rng.standard_normal((h, b - a), dtype=np.float32)
 
     def col(x: float) -> int:
         return int(round((x - MAP_X[0]) * SX))
@@ -63,11 +63,13 @@ def _road_map(layout: RoadLayout, rng: np.random.Generator, stop_line_y: float |
         return int(round((y - MAP_Y[0]) * SY))
 
     # patches and cracks
-    for _ in range(220):
+    for _ in range(120):
         y = rng.uniform(*MAP_Y)
         x = rng.uniform(layout.x_min, layout.x_max)
-        w_m, h_m = rng.uniform(0.5, 3.0), rng.uniform(0.5, 6.0)
-        cv2.rectangle(img, (col(x), row(y)), (col(x + w_m), row(y + h_m)), float(rng.uniform(-14, 12)) + 100, -1)
+        w_m, h_m = rng.uniform(0.5, 2.5), rng.uniform(0.5, 4.0)
+        r0, c0_ = row(y), col(x)
+        patch = img[r0 : row(y + h_m), c0_ : col(x + w_m)]
+        patch += float(rng.choice([-1.0, 1.0]) * rng.uniform(3.0, 8.0))
     for _ in range(160):
         pts = [(col(rng.uniform(layout.x_min, layout.x_max)), row(rng.uniform(*MAP_Y)))]
         for _ in range(5):
@@ -101,11 +103,17 @@ def _road_map(layout: RoadLayout, rng: np.random.Generator, stop_line_y: float |
     return np.clip(img, 0, 255).astype(np.float32)
 
 
-def _build_objects(layout: RoadLayout, light: np.ndarray, ambient: float, night: bool) -> list[tuple[str, _Builder]]:
+def _build_objects(layout: RoadLayout, light: np.ndarray, ambient: float, night: bool,
+                   exposure: float) -> list[tuple[str, _Builder]]:
+    def B(albedo: float) -> _Builder:
+        b = _Builder(+1, light, ambient, night, albedo)
+        b.exposure = exposure
+        return b
+
     objs = []
     xl, xr = layout.x_min, layout.x_max
     for k, y in enumerate((28.0, 68.0, 108.0, 148.0)):
-        b = _Builder(+1, light, ambient, night, 0.55)
+        b = B(0.55)
         px = xl - 2.2
         b.box((px - 0.13, px + 0.13, y - 0.13, y + 0.13, 0.0, 9.0))
         b.box((px, xl + 1.8, y - 0.08, y + 0.08, 8.8, 9.0))
@@ -116,7 +124,7 @@ def _build_objects(layout: RoadLayout, light: np.ndarray, ambient: float, night:
         objs.append((f"lamp{k + 1}", b))
     # cantilever direction sign over the right-most lane
     y = 46.0
-    b = _Builder(+1, light, ambient, night, 0.5)
+    b = B(0.5)
     b.box((xr + 1.1, xr + 1.45, y + 0.1, y + 0.45, 0.0, 7.6))
     panel = (xr - 3.2, xr + 1.1, y, y + 0.15, 5.0, 7.3)
     b.box(panel, albedo=0.12)
@@ -128,7 +136,7 @@ def _build_objects(layout: RoadLayout, light: np.ndarray, ambient: float, night:
     objs.append(("sign", b))
     # small ground sign on the left verge
     y = 20.0
-    b = _Builder(+1, light, ambient, night, 0.5)
+    b = B(0.5)
     b.box((xl - 1.6, xl - 1.5, y, y + 0.1, 0.0, 2.4))
     sp = (xl - 2.2, xl - 0.9, y - 0.05, y, 1.5, 2.5)
     b.box(sp, albedo=0.9)
@@ -138,7 +146,7 @@ def _build_objects(layout: RoadLayout, light: np.ndarray, ambient: float, night:
     # delineator posts
     for k, y in enumerate(np.arange(15.0, 200.0, 25.0)):
         for side, x in (("L", xl - 1.3), ("R", xr + 1.3)):
-            b = _Builder(+1, light, ambient, night, 0.85)
+            b = B(0.85)
             post = (x - 0.06, x + 0.06, y, y + 0.12, 0.0, 1.1)
             b.box(post)
             b.decal(post, 2, 0.0, 1.0, 0.62, 0.8, 0.05)
@@ -185,6 +193,14 @@ def render_background(cam: Camera, layout: RoadLayout, rng: np.random.Generator,
     M = cam2.road_to_image_matrix() @ A
     big = cv2.warpPerspective(tex, M, (cam2.width, cam2.height_px), flags=cv2.INTER_LINEAR,
                               borderMode=cv2.BORDER_REPLICATE)
+    # poor man's mip-mapping: far rows come from a texture blurred along the road, against aliasing streaks
+    soft = cv2.warpPerspective(cv2.GaussianBlur(tex, (0, 0), sigmaX=1.5, sigmaY=5.0), M,
+                               (cam2.width, cam2.height_px), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    centre_col = np.full(cam2.height_px, cam2.width / 2.0)
+    road_y = cam2.image_to_road(np.column_stack([centre_col, np.arange(cam2.height_px, dtype=np.float64)]))[:, 1]
+    road_y = np.where(np.isfinite(road_y) & (road_y > 0), road_y, 1e6)
+    wsoft = np.clip((road_y - 50.0) / 70.0, 0.0, 1.0).astype(np.float32)[:, None]
+    big = big * (1.0 - wsoft) + soft * wsoft
     big *= exposure
     # sky and a tree line above the horizon
     hz = cam2.horizon_row() + 3 * ss
@@ -192,7 +208,7 @@ def render_background(cam: Camera, layout: RoadLayout, rng: np.random.Generator,
     sky = (150.0 + 60.0 * np.clip((hz - rows) / max(hz, 1.0), 0, 1)) * (0.15 if night else 1.0) * min(exposure * 1.4, 1.0)
     tree_top = hz - (8 + 10 * np.abs(_lowfreq(rng, (1, cam2.width), (1, 40), 1.0)[0])) * ss
     trees = (rows >= tree_top[None, :]) & (rows < hz)
-    tree_val = (55.0 + rng.normal(0, 10, (cam2.height_px, cam2.width))) * (0.2 if night else exposure)
+    tree_val = (55.0 + 10.0 * rng.standard_normal((cam2.height_px, cam2.width), dtype=np.float32)) * (0.2 if night else exposure)
     above = rows < hz
     big = np.where(above, np.broadcast_to(sky, big.shape), big)
     big = np.where(trees, tree_val, big).astype(np.float32)
@@ -202,7 +218,7 @@ def render_background(cam: Camera, layout: RoadLayout, rng: np.random.Generator,
 
     objects: list[StaticObject] = []
     shadow_mask = np.zeros_like(bg_u8)
-    for name, b in _build_objects(layout, sun, ambient, night):
+    for name, b in _build_objects(layout, sun, ambient, night, exposure):
         quads = np.array(b.quads)
         parts = np.array(b.parts)
         if shadows:
@@ -211,7 +227,7 @@ def render_background(cam: Camera, layout: RoadLayout, rng: np.random.Generator,
                 hull = cv2.convexHull(np.round(sp * 16).astype(np.int32))
                 cv2.fillConvexPoly(shadow_mask, hull, 255, cv2.LINE_8, 4)
         canvas = np.zeros_like(bg_u8)
-        draw_quads(canvas, cam, quads, np.array(b.normals), np.array(b.values) * exposure)
+        draw_quads(canvas, cam, quads, np.array(b.normals), np.array(b.values))
         mask = np.zeros_like(bg_u8)
         draw_quads(mask, cam, quads, np.array(b.normals), np.full(len(quads), 255.0))
         ys, xs = np.nonzero(mask)
@@ -221,13 +237,10 @@ def render_background(cam: Camera, layout: RoadLayout, rng: np.random.Generator,
         base = parts.reshape(-1, 3)[:, :2].mean(axis=0)
         depth = float(np.hypot(base[0] - cam.x_m, base[1]))
         fid = []
-        if name == "sign":  # corners of the sign's white inner symbol and panel
-            panel = parts[1]
-            for corner in (panel[0], panel[1]):
-                pass
+        if name == "sign":  # near the corners of the sign panel's face
             fid = [tuple(cam.project(np.array(p))[0]) for p in _sign_fiducials(parts[1])]
-        elif name.startswith("lamp"):
-            fid = [tuple(cam.project(parts[0][[4, 5, 6, 7]].mean(axis=0) - [0, 0, 1.0])[0])]
+        elif name.startswith("lamp"):  # where the arm leaves the pole
+            fid = [tuple(cam.project(parts[0][[4, 5, 6, 7]].mean(axis=0) - [0, 0, 0.1])[0])]
         elif name.startswith("post"):
             fid = [tuple(cam.project(parts[0][[4, 5, 6, 7]].mean(axis=0) - [0, 0, 0.3])[0])]
         objects.append(StaticObject(name, depth, int(x0), int(y0), canvas[y0:y1, x0:x1].copy(),

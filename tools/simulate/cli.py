@@ -35,20 +35,33 @@ def _preset_help() -> str:
 @click.option("--lanes", type=click.IntRange(1, 6), default=None, help="Approaching lanes (overrides the preset).")
 @click.option("--receding-lanes", type=click.IntRange(0, 5), default=None, help="Receding lanes.")
 @click.option("--demand", type=click.FloatRange(min=0), default=None, help="Demand per lane (veh/h).")
+@click.option("--demand-profile", default=None, metavar="T:F,...",
+              help="Demand factor over time, piecewise linear, e.g. '0:0.5,600:1.5,1200:0.8'.")
 @click.option("--cam-height", type=click.FloatRange(min=3, max=40), default=None, help="Camera height (m).")
 @click.option("--tilt", type=click.FloatRange(min=3, max=80), default=None, help="Camera tilt down (degrees).")
 @click.option("--pan", type=float, default=None, help="Camera pan (degrees, + right); default aims at the road.")
 @click.option("--repeat-frames", type=click.IntRange(1, 4), default=None, help="Write each frame N times (15 fps padded to 30 = 2).")
 @click.option("--drop-frames", type=click.FloatRange(0, 0.5), default=None, help="Probability of dropping a frame.")
 @click.option("--jitter-ms", type=click.FloatRange(min=0), default=None, help="Capture timestamp jitter (ms, s.d.).")
+@click.option("--crf", type=click.IntRange(0, 51), default=None, help="H.264 quality (higher = more compression).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
-def simulate(preset, seed, seconds, out, width, height, fps, lanes, receding_lanes, demand, cam_height, tilt, pan,
-             repeat_frames, drop_frames, jitter_ms, quiet) -> None:
+def simulate(preset, seed, seconds, out, width, height, fps, lanes, receding_lanes, demand, demand_profile, cam_height,
+             tilt, pan, repeat_frames, drop_frames, jitter_ms, crf, quiet) -> None:
     from tools.simulate.scenario import render_scenario
+
+    profile = None
+    if demand_profile:
+        try:
+            profile = [[float(a), float(b)] for a, b in (item.split(":") for item in demand_profile.split(","))]
+        except ValueError:
+            raise click.BadParameter(f"expected T:F pairs separated by commas, got {demand_profile!r}",
+                                     param_hint="--demand-profile") from None
+        if any(b < 0 for _, b in profile) or [a for a, _ in profile] != sorted(a for a, _ in profile):
+            raise click.BadParameter("times must increase and factors be >= 0", param_hint="--demand-profile")
 
     overrides = dict(lanes_approaching=lanes, lanes_receding=receding_lanes, demand_vph=demand,
                      cam_height_m=cam_height, cam_tilt_deg=tilt, cam_pan_deg=pan, repeat_frames=repeat_frames,
-                     drop_prob=drop_frames, jitter_ms=jitter_ms)
+                     drop_prob=drop_frames, jitter_ms=jitter_ms, demand_profile=profile, video_crf=crf)
     t0 = time.perf_counter()
     try:
         res = render_scenario(preset, seed, seconds, out, width=width, height=height, fps=fps,

@@ -77,13 +77,15 @@ class Conditions:
             img = cv2.warpAffine(img, M, (self.w, self.h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         if p.defocus > 0:
             img = cv2.GaussianBlur(img, (0, 0), p.defocus)
+        if p.motion_blur and (p.night or p.dusk):
+            img = cv2.blur(img, (1, 3))  # long exposure: vehicles smear along their (mostly vertical) image motion
         elif p.motion_blur and p.shake_px > 0:
             img = cv2.blur(img, (2, 2))
         if p.auto_gain:
             m = float(cv2.mean(img[self.h // 3 :: 4, ::4])[0])
             self.gain_ema = m if self.gain_ema is None else 0.97 * self.gain_ema + 0.03 * m
-            target = 50.0 if p.night else 105.0
-            g = float(np.clip(target / max(self.gain_ema, 1.0), 0.85, 1.6 if (p.night or p.dusk) else 1.2))
+            target = 50.0 if p.night else 55.0 if p.dusk else 105.0
+            g = float(np.clip(target / max(self.gain_ema, 1.0), 0.85, 1.6 if p.night else 1.3 if p.dusk else 1.2))
             if abs(g - 1.0) > 0.01:
                 img = cv2.convertScaleAbs(img, alpha=g, beta=0)
         if p.noise_sigma > 0:

@@ -17,6 +17,7 @@ class SceneParams:
     # traffic (per lane)
     demand_vph: float = 900.0
     demand_profile: list[list[float]] = field(default_factory=list)  # [[t_s, factor], ...] piecewise linear
+    lane_demand_factors: list[float] = field(default_factory=list)  # per lane (left to right); default all 1
     speed_limit_kmh: float = 100.0
     class_mix: dict[str, float] = field(
         default_factory=lambda: {"motorcycle": 0.02, "car": 0.78, "van": 0.1, "truck": 0.05, "artic": 0.03, "bus": 0.02}
@@ -61,7 +62,7 @@ PRESETS: dict[str, str] = {
     "stopped-queue": "2 lanes with a red light in view: a standing queue over the loops, then discharge.",
     "long-shadows": "Low sun from the side: long vehicle shadows reaching into the neighbouring lanes.",
     "night": "Dark road lit only under lamps, headlights with glare, tail lights, high sensor noise.",
-    "rain": "Rain streaks, low contrast, wet road reflections, overcast light.",
+    "rain": "Rain streaks, low contrast, dark wet road with dimmer markings, slight defocus, overcast light.",
     "wind-shake": "Camera pole in wind: jitter of a few px plus a slow drift of about 20 px per minute.",
     "trucks-and-buses": "Heavy-vehicle mix (trucks, articulated trucks, buses) that occlude the lanes behind.",
     "two-directions": "2 approaching + 2 receding lanes, camera on a pole at the roadside.",

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 import shutil
@@ -15,7 +14,15 @@ import numpy as np
 
 from tools.simulate.scene import Scene
 from tools.simulate.stream import site_toml
-from tools.simulate.truth import AGGREGATE_FIELDS, LOOP_FIELDS, VEHICLE_FIELDS, _fmt, write_csv
+from tools.simulate.truth import AGGREGATE_FIELDS, LOOP_FIELDS, VEHICLE_FIELDS, write_csv
+
+
+ROW_FORMAT = (
+    "{frame},{t:.6f},{vehicle_id},{class},{lane},{x_m:.4f},{y_front_m:.4f},{y_rear_m:.4f},{y_centre_m:.4f},"
+    "{speed_mps:.4f},{accel_mps2:.4f},{length_m:.4f},{bbox_x0:.2f},{bbox_y0:.2f},{bbox_x1:.2f},{bbox_y1:.2f},"
+    "{visible_frac:.3f}\n"
+)
+assert ROW_FORMAT.count("{") == len(VEHICLE_FIELDS)
 
 
 @dataclass
@@ -77,9 +84,9 @@ def render_scenario(preset: str, seed: int, seconds: float, out_dir: Path, *, wi
     if seconds <= 0:
         raise ValueError(f"seconds must be positive, got {seconds}")
     out_dir = Path(out_dir)
+    scene = Scene(preset, seed, width=width, height=height, fps=fps, **overrides)
     truth_dir = out_dir / "truth"
     truth_dir.mkdir(parents=True, exist_ok=True)
-    scene = Scene(preset, seed, width=width, height=height, fps=fps, **overrides)
     p = scene.p
     rng = np.random.default_rng([int(seed), 7])
     content_fps = fps / p.repeat_frames
@@ -100,8 +107,7 @@ def render_scenario(preset: str, seed: int, seconds: float, out_dir: Path, *, wi
 
         bar = tqdm(total=len(times), unit="frame", desc=f"{preset} seed {seed}")
     vf = open(truth_dir / "vehicles.csv", "w", newline="")
-    vw = csv.writer(vf)
-    vw.writerow(VEHICLE_FIELDS)
+    vf.write(",".join(VEHICLE_FIELDS) + "\n")
     t_prev = 0.0
     drop_pending = False
     try:
@@ -122,8 +128,7 @@ def render_scenario(preset: str, seed: int, seconds: float, out_dir: Path, *, wi
                 writer.write(img)
             drop_pending = False
             for row in rows:
-                row["frame"], row["t"] = frame, round(float(t), 6)
-                vw.writerow([_fmt(row[k]) for k in VEHICLE_FIELDS])
+                vf.write(ROW_FORMAT.format(frame=frame, t=float(t), **row))
             if bar:
                 bar.update(1)
         # the truth runs to the end of the scenario even when the last frames were dropped or padded

@@ -41,7 +41,7 @@ class Scene:
         el, az = math.radians(p.sun_elevation_deg), math.radians(p.sun_azimuth_deg)
         self.sun = np.array([math.cos(el) * math.sin(az), math.cos(el) * math.cos(az), math.sin(el)])
         self.ambient = 0.85 if (p.overcast or p.night or p.dusk) else 0.5
-        self.exposure = 0.28 if p.night else 0.5 if p.dusk else 0.8 if p.overcast else 1.0
+        self.exposure = 0.28 if p.night else 0.4 if p.dusk else 0.8 if p.overcast else 1.0
         self.shadows = p.shadows and not (p.overcast or p.night or p.dusk)
         light = self.sun * (0.35 if p.overcast else 1.0)
         lamp_ys = [28.0, 68.0, 108.0, 148.0]
@@ -49,6 +49,13 @@ class Scene:
         self.bg, self.bg_shadow, self.objects = render_background(
             self.cam, self.layout, rng_bg, sun=self.sun, ambient=self.ambient, shadows=self.shadows, night=p.night,
             exposure=self.exposure, wet=p.rain, stop_line_y=stop_y, lamp_ys=lamp_ys)
+        self.objects.sort(key=lambda o: o.depth, reverse=True)  # painter's order among static objects
+        for o in self.objects:  # baked in; pasted again only over vehicles farther away than the object
+            self._paste(self.bg, o)
+            self._paste(self.bg_shadow, o)
+        self._obj_box = np.array([[o.x0, o.y0, o.x0 + o.patch.shape[1], o.y0 + o.patch.shape[0]] for o in self.objects],
+                                 dtype=np.float64).reshape(-1, 4)
+        self._obj_depth = np.array([o.depth for o in self.objects])
         self.night_lights = p.night or p.dusk
         self.traffic = Traffic(p, self.layout, self.rng_traffic, lambda c, d: build_shape(
             c, self.rng_shape, d, light, self.ambient, self.night_lights, self.exposure))
@@ -113,10 +120,16 @@ class Scene:
                     img.append([round(float(px[0]), 3), round(float(px[1]), 3)])
         # fiducials: static high-texture points well inside the image
         fid = []
-        for o in sorted(self.objects, key=lambda o: (not o.name.startswith("sign"), not o.name.startswith("lamp"))):
-            for (u, v) in o.fiducials:
-                if 16 <= u <= W - 17 and 16 <= v <= H - 17 and len(fid) < 6:
-                    fid.append([round(float(u), 2), round(float(v), 2)])
+        per_kind = {"sign": 4, "lamp": 2, "post": 2}
+        for kind in ("sign", "lamp", "post"):
+            objs = sorted((o for o in self.objects if o.name.startswith(kind) and not o.name.startswith("ground")),
+                          key=lambda o: o.depth)
+            taken = 0
+            for o in objs:
+                for (u, v) in o.fiducials:
+                    if 16 <= u <= W - 17 and 16 <= v <= H - 17 and taken < per_kind[kind]:
+                        fid.append([round(float(u), 2), round(float(v), 2)])
+                        taken += 1
         return dict(lanes=lanes, loops=loops, calibration=dict(image_px=img, road_m=road), fiducials=fid)
 
     def site_dict(self, url: str, *, name: str | None = None) -> dict:
@@ -158,8 +171,6 @@ class Scene:
         n = len(tr.s)
         rows: list[dict] = []
         if n == 0:
-            for o in self.objects:
-                self._paste(img, o)
             return self.conditions.apply(img, tr.t, self.conditions.offset(tr.t)), rows
         yf = tr.y_front()
         d = tr.dirs[tr.lane]
@@ -189,6 +200,8 @@ class Scene:
                 hull = cv2.convexHull(spx[c_end[k] - npt[k] : c_end[k]])
                 cv2.fillConvexPoly(self._mask, hull, 255, cv2.LINE_8, 4)
             cv2.copyTo(self.bg_shadow, self._mask, img)
+        if self.p.rain and len(idx):
+            self._reflections(img, allq, alln, allv)
         if self.night_lights and len(idx):
             self._beam.fill(0)
             for k, i in enumerate(idx):
@@ -199,9 +212,27 @@ class Scene:
                     cv2.fillConvexPoly(self._beam, np.round(cam.road_to_image(poly) * 16).astype(np.int32), 45,
                                        cv2.LINE_8, 4)
             cv2.add(img, cv2.blur(self._beam, (9, 9)), dst=img)
+        if len(idx):
+            vis_arr = np.nonzero(facing)[0]
+            vis = vis_arr.tolist()
+            vis_lo = np.searchsorted(vis_arr, q_end - nq).tolist()
+            vis_hi = np.searchsorted(vis_arr, q_end).tolist()
+            vals = allv.tolist()
         depth = np.hypot(tr.x[idx] - cam.x_m, yc[idx])
+        objs = []
+        if len(idx) and len(self.objects):
+            starts = c_end - npt
+            vx0 = np.minimum.reduceat(cpx[:, 0], starts)
+            vx1 = np.maximum.reduceat(cpx[:, 0], starts)
+            vy0 = np.minimum.reduceat(cpx[:, 1], starts)
+            vy1 = np.maximum.reduceat(cpx[:, 1], starts)
+            ob = self._obj_box
+            hit = ((vx1[:, None] >= ob[None, :, 0]) & (vx0[:, None] <= ob[None, :, 2])
+                   & (vy1[:, None] >= ob[None, :, 1]) & (vy0[:, None] <= ob[None, :, 3])
+                   & (depth[:, None] > self._obj_depth[None, :]))
+            objs = np.nonzero(hit.any(axis=0))[0].tolist()
         order = sorted([(float(depth[k]), 0, k) for k in range(len(idx))]
-                       + [(o.depth, 1, j) for j, o in enumerate(self.objects)], reverse=True)
+                       + [(self.objects[j].depth, 1, j) for j in objs], reverse=True)
         if want_truth:
             self._idbuf.fill(0)
         hulls = {}
@@ -215,9 +246,8 @@ class Scene:
                     roi = self._idbuf[y0 : y0 + mh.shape[0], x0 : x0 + mh.shape[1]]
                     roi[mh[: roi.shape[0], : roi.shape[1]]] = 65535
                 continue
-            a = q_end[k] - nq[k]
-            for qi in np.nonzero(facing[a : q_end[k]])[0] + a:
-                cv2.fillConvexPoly(img, qpts[qi], float(allv[qi]), cv2.LINE_8, 4)
+            for qi in vis[vis_lo[k] : vis_hi[k]]:
+                cv2.fillConvexPoly(img, qpts[qi], vals[qi], cv2.LINE_8, 4)
             if want_truth:
                 c0 = c_end[k] - npt[k]
                 if (cdep[c0 : c_end[k]] <= 0.5).any():
@@ -250,6 +280,19 @@ class Scene:
                     visible_frac=float(min(1.0, counts[k + 1] / max(area, 1.0))),
                 ))
         return out, rows
+
+    def _reflections(self, img: np.ndarray, quads: np.ndarray, normals: np.ndarray, values: np.ndarray) -> None:
+        """Crude wet-road mirror images: the vehicles reflected in the road plane, faint and dark."""
+        mq = quads.copy()
+        mq[..., 2] *= -1.0
+        mn = normals * np.array([1.0, 1.0, -1.0])
+        px, dep = self.cam.project(mq)
+        facing = (np.einsum("ij,ij->i", mn, mq.mean(axis=1) - self.cam.centre) < 0) & (dep > 0.5).all(axis=1)
+        pts = np.round(px * 16).astype(np.int32)
+        road = 0.72 * 70.0 * self.exposure + 30.0
+        vals = (0.25 * values + 0.75 * road).tolist()
+        for qi in np.nonzero(facing)[0].tolist():
+            cv2.fillConvexPoly(img, pts[qi], vals[qi], cv2.LINE_8, 4)
 
     def _paste(self, img: np.ndarray, o) -> None:
         roi = img[o.y0 : o.y0 + o.patch.shape[0], o.x0 : o.x0 + o.patch.shape[1]]

@@ -40,7 +40,8 @@ class Traffic:
         w = np.array([params.class_mix[c] for c in self.classes], dtype=np.float64)
         self.class_p = w / w.sum()
         nl = len(layout.lanes)
-        self.next_arrival = np.array([rng.exponential(3600.0 / max(params.demand_vph, 1e-6)) for _ in range(nl)])
+        fac = list(params.lane_demand_factors) + [1.0] * nl
+        self.next_arrival = np.array([rng.exponential(3600.0 / max(params.demand_vph * fac[k], 1e-6)) for k in range(nl)])
         self.pending = np.zeros(nl, np.int64)
         self.dirs = np.array([ln.direction for ln in layout.lanes])
         self.y_start = np.array([ln.y_start for ln in layout.lanes])
@@ -136,10 +137,12 @@ class Traffic:
         """Advance the traffic by dt seconds (spawn, follow, change lanes, leave)."""
         t1 = self.t + dt
         lam = self.demand_factor(self.t)
+        factors = self.p.lane_demand_factors
         for k in range(len(self.layout.lanes)):
+            f = factors[k] if k < len(factors) else 1.0
             while self.next_arrival[k] <= t1:
                 self.pending[k] += 1
-                rate = max(self.p.demand_vph * lam, 1e-3) / 3600.0
+                rate = max(self.p.demand_vph * lam * f, 1e-3) / 3600.0
                 self.next_arrival[k] += self.rng.exponential(1.0 / rate)
             if self.pending[k] > 0 and self._spawn(k):
                 self.pending[k] -= 1

@@ -244,3 +244,26 @@ def read_aggregates(path: Path) -> list[dict]:
                     d[k] = float(v)
             out.append(d)
     return out
+
+
+def read_loop_events(path: Path) -> list:
+    """loop_events.csv back as appliance LoopEvent objects."""
+    from appliance.types import LoopEvent
+
+    out = []
+    with open(path, newline="") as f:
+        for r in csv.DictReader(f):
+            out.append(LoopEvent(
+                loop_id=r["loop_id"], channel=int(r["channel"]), lane=int(r["lane"]),
+                t_on=float(r["t_on"]), t_off=float(r["t_off"]), wall_on=float(r["wall_on"]),
+                wall_off=float(r["wall_off"]), speed_kmh=float(r["speed_kmh"]) if r["speed_kmh"] else None,
+                length_m=float(r["length_m"]) if r["length_m"] else None, vehicle_id=int(r["vehicle_id"]),
+            ))
+    return out
+
+
+def read_vehicles(path: Path) -> np.ndarray:
+    """vehicles.csv as a NumPy structured array (class as a short string)."""
+    dtype = [(name, "U10" if name == "class" else ("i8" if name in ("frame", "vehicle_id", "lane") else "f8"))
+             for name in VEHICLE_FIELDS]
+    return np.genfromtxt(path, delimiter=",", names=True, dtype=dtype, encoding="utf-8", ndmin=1)

@@ -78,6 +78,7 @@ class _Builder:
         self.parts, self.lights, self.light_front = [], [], []
         self.part_of: list[int] = []
         self.exposure = 1.0
+        self.face_index: dict = {}
 
     def _normal(self, face: int) -> np.ndarray:
         return [np.array([0, 0, 1.0]), np.array([0, self.dir, 0.0]), np.array([0, -self.dir, 0.0]),
@@ -85,7 +86,7 @@ class _Builder:
 
     def _shade(self, albedo: float, n: np.ndarray) -> float:
         lit = self.ambient + max(0.0, float(n @ self.light)) * (1.0 - self.ambient)
-        return float(np.clip(255.0 * albedo * lit * self.exposure, 0, 255))
+        return min(255.0, max(0.0, 255.0 * albedo * lit * self.exposure))
 
     def box(self, b: tuple, albedo: float | None = None, faces=(0, 1, 2, 3, 4)) -> int:
         albedo = self.albedo if albedo is None else albedo
@@ -98,14 +99,13 @@ class _Builder:
             self.values.append(self._shade(albedo, n))
             self.face_of.append(len(self.quads) - 1)
             self.part_of.append(len(self.parts) - 1)
+            self.face_index[(tuple(b), f)] = len(self.quads) - 1
         return first
 
     def decal(self, b: tuple, face: int, a0, a1, c0, c1, albedo: float, emissive: float | None = None) -> None:
         """A rectangle on face `face` of box b (must be drawn after that face)."""
         n = self._normal(face)
-        # find the face quad of this box
-        fq = _face_quad(b, face)
-        idx = next(i for i in range(len(self.quads) - 1, -1, -1) if np.allclose(self.quads[i], fq))
+        idx = self.face_index[(tuple(b), face)]
         self.quads.append(_face_quad(b, face, a0, a1, c0, c1))
         self.normals.append(n)
         self.values.append(emissive if emissive is not None else self._shade(albedo, n))
