@@ -107,7 +107,7 @@ class TrackingParams:
     max_speed_kmh: float = 200.0
     connection_m: float = 5.0  # r0: features closer than this may be one vehicle
     segmentation_m: float = 2.0  # pair dismissed when its distance range exceeds this
-    min_features: int = 3  # a vehicle needs at least this many features
+    min_features: int = 4  # a vehicle needs at least this many features
     min_track_frames: int = 5
     stabilise: bool = True
     stabilise_model: str = "translation"  # or "similarity"

@@ -75,17 +75,23 @@ class CornerDetector:
             return np.zeros((0, 2))
         if prev is not None:
             mask = cv2.bitwise_and(mask, self.motion_mask(cur, prev[y0s:y1s, x0s:x1s]))
+        # score only the bounding box of the moving part of the zones
+        bx, by, bw, bh = cv2.boundingRect(mask)
+        if bw < 8 or bh < 8:
+            return np.zeros((0, 2))
+        cur = cur[by : by + bh, bx : bx + bw]
+        mask = mask[by : by + bh, bx : bx + bw]
+        x0s += bx
+        y0s += by
         score = cv2.cornerMinEigenVal(cur, self.BLOCK, 3)
         self.last_score = score
         peak = cv2.dilate(score, None)  # 3x3 non-maximum suppression
         good = (score >= self.p.corner_min_eig) & (score >= peak) & (mask > 0)
-        # keep away from the border so the template fits
-        b = self.p.template_px // 2 + 1
-        good[:b, :] = False
-        good[-b:, :] = False
-        good[:, :b] = False
-        good[:, -b:] = False
         ys, xs = np.nonzero(good)
+        # keep away from the image border so the template fits
+        b = self.p.template_px // 2 + 1
+        inside = (xs + x0s >= b) & (xs + x0s < w - b) & (ys + y0s >= b) & (ys + y0s < h - b)
+        ys, xs = ys[inside], xs[inside]
         if len(xs) == 0:
             return np.zeros((0, 2))
         sc = score[ys, xs]

@@ -19,7 +19,7 @@ UNSEEN, LINKED, APART, MERGED = 0, 1, 2, 3  # MERGED: a fragment joined to its v
 NEAR_REP_M = 3.0  # features this close along the road to the representative one give the velocity
 MIN_TRAVEL_M = 1.0  # a group is reported once it has moved this far (static texture never does)
 MIN_SPEED_MPS = 1.5  # ... and is moving at least this fast (vehicles are found while they move)
-FRAGMENT_X_MARGIN_M = 0.5  # a new group within a known vehicle's extent (plus this) is part of it
+FRAGMENT_X_MARGIN_M = 0.8  # a new group within a known vehicle's extent (plus this) is part of it
 
 
 @njit(cache=True)

@@ -26,14 +26,13 @@ class Transition:
 class HealthMonitor:
     """Keeps the active faults. Call the observe_* methods, then take ``transitions()``."""
 
-    def __init__(self, cfg: HealthConfig, start_t: float = 0.0):
+    def __init__(self, cfg: HealthConfig):
         self.cfg = cfg
         self.since: dict[HealthFault, float] = {}  # active fault -> wall time it became active
         self._pending: dict[HealthFault, float] = {}  # condition true since (t), not yet held long enough
         self._transitions: list[Transition] = []
         self._prev_thumb: np.ndarray | None = None
         self._same_since: float | None = None
-        self._start_t = start_t
         self._last_hit: dict[int, float] = {}
         self._call_since: dict[int, float] = {}
         self.mean_grey = float("nan")
@@ -108,7 +107,7 @@ class HealthMonitor:
                     locked.append(ch.channel)
             else:
                 self._call_since.pop(ch.channel, None)
-            if t - self._last_hit.get(ch.channel, self._start_t) >= self.cfg.no_hits_s:
+            if t - self._last_hit.setdefault(ch.channel, t) >= self.cfg.no_hits_s:
                 silent.append(ch.channel)
         self.set(HealthFault.LOCKED_ON, bool(locked), t, wall, f"channels {locked}")
         self.set(HealthFault.NO_HITS, bool(silent), t, wall, f"channels {silent}")

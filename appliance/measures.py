@@ -98,6 +98,7 @@ class TrafficMeasures:
         self.now_wall: float | None = None
         self.started_wall: float | None = None
         self.gaps: list[tuple[float, float]] = []  # unobserved wall intervals (service restarts)
+        self.quality: dict[float, int] = {}  # period start -> HealthFault bits seen in it
         self._resumed_from: float | None = None
 
     # ------------------------------------------------------------------ per step
@@ -119,14 +120,17 @@ class TrafficMeasures:
             lp.now_wall = wall
         seg_lane, seg_w0, seg_w1, seg_y0, seg_y1 = [], [], [], [], []
         seen = set()
-        todo: list[VehicleState] = []
+        todo: list[tuple[VehicleState, list[VehicleState]]] = []
+        known = set(self.tracks)
         for v in vehicles:
-            todo.extend(_states_of(v) if v.id not in self.tracks else [v])
-        raws = self.lanes.lanes_at(np.array([s.x for s in todo]), np.array([s.y_front for s in todo]))
+            todo.append((v, _states_of(v) if v.id not in known else [v]))
+            known.add(v.id)
+        flat = [s for _, ss in todo for s in ss]
+        raws = self.lanes.lanes_at(np.array([s.x for s in flat]), np.array([s.y_front for s in flat]))
         k = 0
-        for v in vehicles:
+        for v, ss in todo:
             seen.add(v.id)
-            for s in _states_of(v) if v.id not in self.tracks else [v]:
+            for s in ss:
                 raw = int(raws[k]) or None
                 k += 1
                 seg = self._advance(s, raw, offset, out)
@@ -240,11 +244,13 @@ class TrafficMeasures:
     def _complete(self, p: float, partial: bool) -> list[LaneAggregate]:
         sums = self.edie.take(p)
         covered = self._covered(p, p + self.period_s)
+        partial = partial or covered < self.period_s - PERIOD_TOLERANCE_S
         aggs = [self._aggregate(p, i, lane, sums, partial, covered) for i, lane in enumerate(self.lanes.ids)]
         self.gaps = [g for g in self.gaps if g[1] > p + self.period_s]
         for lane in self.lanes.ids:
             self.crossings[lane] = [c for c in self.crossings[lane] if c.wall >= p + self.period_s]
         self.partial_periods.discard(p)
+        self.quality.pop(p, None)
         window = self.site.measures.occupancy_window_s
         for lp in self.loops:
             lp.prune(min(p + self.period_s, (self.now_wall or p) - window))
@@ -273,8 +279,13 @@ class TrafficMeasures:
             speed_kmh=v, time_mean_speed_kmh=float(speeds.mean()) if len(cr) else None, occupancy_pct=occ,
             speed85_kmh=float(np.percentile(speeds, 85)) if len(cr) else None,
             headway_s=float(np.diff(times).mean()) if len(cr) >= 2 else None,
-            class_counts=classes, partial=partial,
+            class_counts=classes, partial=partial, quality=self.quality.get(p, 0),
         )
+
+    def add_quality(self, faults: int) -> None:
+        """OR HealthFault bits (the service's health bitfield) into the current period's quality."""
+        if self.clock.current is not None and faults:
+            self.quality[self.clock.current] = self.quality.get(self.clock.current, 0) | int(faults)
 
     def flush(self, wall: float) -> list[LaneAggregate]:
         """The current period so far, as partial aggregates (on stop)."""
@@ -307,6 +318,7 @@ class TrafficMeasures:
             "edie": self.edie.state(),
             "crossings": {str(k): [c.to_dict() for c in v] for k, v in self.crossings.items()},
             "partial": sorted(self.partial_periods),
+            "quality": {str(p): q for p, q in self.quality.items()},
             "loops": {lp.cfg.id: lp.state() for lp in self.loops},
         }
 
@@ -320,6 +332,7 @@ class TrafficMeasures:
             if int(k) in self.crossings:
                 self.crossings[int(k)] = [Crossing(**c) for c in v]
         self.partial_periods = set(state["partial"])
+        self.quality = {float(p): int(q) for p, q in state.get("quality", {}).items()}
         if self.clock.current is not None:
             self.partial_periods.add(self.clock.current)
         self.started_wall = state.get("started_wall")

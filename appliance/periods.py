@@ -1,4 +1,4 @@
-"""Wall-clock aligned measurement periods: which period a time falls in, and splitting intervals."""
+"""Wall-clock aligned measurement periods: which period a time falls in, which periods completed."""
 
 from __future__ import annotations
 
@@ -10,20 +10,6 @@ PERIOD_TOLERANCE_S = 1.0  # a start/stop within this of a boundary still counts 
 def period_start(wall: float, period_s: float) -> float:
     """Start of the wall-clock aligned period holding ``wall``."""
     return math.floor(wall / period_s) * period_s
-
-
-def split_interval(w0: float, w1: float, period_s: float) -> list[tuple[float, float]]:
-    """Split [w0, w1] at period boundaries: [(period_start, seconds inside that period), ...]."""
-    out: list[tuple[float, float]] = []
-    if w1 <= w0:
-        return out
-    p = period_start(w0, period_s)
-    while p < w1:
-        a, b = max(w0, p), min(w1, p + period_s)
-        if b > a:
-            out.append((p, b - a))
-        p += period_s
-    return out
 
 
 class PeriodClock:

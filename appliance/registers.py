@@ -102,6 +102,8 @@ LANES = 5100
 DI_CALL, DI_FAULT, DI_FAILSAFE, DI_FORCED = 0, 1000, 1016, 2000
 HR_FORCE = 0
 
+_DEFAULT_CLASSES = ["motorcycle", "small", "medium", "large"]
+
 MAP: list[Field] = [
     Field("di", DI_CALL, "call", "bit", "", "1 = call", "Live detector call of channel c (presence, or a pulse of pulse_ms per actuation in pulse mode; force-call and fail-safe applied)", "channel", MAX_CHANNELS),
     *[
@@ -130,7 +132,7 @@ MAP: list[Field] = [
     Field("ir", CH_SPEED, "last_speed", "uint16", "km/h", "0.1", "Speed of the last vehicle on channel c; 0xFFFF = no data", "channel", MAX_CHANNELS),
     Field("ir", CH_LENGTH, "last_length", "uint16", "m", "0.1", "Length of the last vehicle on channel c; 0xFFFF = no data", "channel", MAX_CHANNELS),
     *[
-        Field("ir", CH_CLASS + CLASS_STRIDE * k, f"class{k}_count", "uint16", "vehicles", "1, wraps", f"Rolling count of length class {k} on channel c", "channel", MAX_CHANNELS)
+        Field("ir", CH_CLASS + CLASS_STRIDE * k, f"class{k}_count", "uint16", "vehicles", "1, wraps", f"Rolling count of length class {k} on channel c" + (f" (class {k} = measures.length_class_names[{k}], default {_DEFAULT_CLASSES[k]})" if k < len(_DEFAULT_CLASSES) else " (measures.length_class_names)"), "channel", MAX_CHANNELS)
         for k in range(MAX_CLASSES)
     ],
     Field("ir", PERIOD + 0, "period_seq", "uint16", "", "0-255", "Sequence number of the last complete period, +1 per period (mod 256)"),
@@ -158,7 +160,7 @@ MAP: list[Field] = [
         Field("ir", LANES + 12 + MAX_CLASSES + k, f"lane_reserved{k}", "uint16", "", "0", "Reserved (reads 0)", "lane", MAX_LANES, LANE_STRIDE)
         for k in range(LANE_STRIDE - 12 - MAX_CLASSES)
     ],
-    Field("hr", HR_FORCE, "force_call", "uint16", "s", "1", "Forced call of channel c: write N to force the call for N s (clamped to outputs.force_call_max_s), 0 cancels; reads the remaining seconds. Writes refused with exception 01 ILLEGAL FUNCTION unless outputs.allow_writes; unconfigured channel: exception 02", "channel", MAX_CHANNELS),
+    Field("hr", HR_FORCE, "force_call", "uint16", "s", "1", "Forced call of channel c: write N to force the call for N s (clamped to outputs.force_call_max_s), 0 cancels; reads the remaining seconds of a force written over Modbus (0 once it ends or is cancelled elsewhere). Writes refused with exception 01 ILLEGAL FUNCTION unless outputs.allow_writes; unconfigured channel: exception 02", "channel", MAX_CHANNELS),
 ]
 
 FIELDS: dict[str, Field] = {f.name: f for f in MAP}
@@ -222,6 +224,9 @@ class Layout:
         )
 
 
+_IR = {f.name: f.address for f in MAP if f.table == "ir"}  # encoding addresses come from MAP
+_LANE = {f.name: f.address - LANES for f in MAP if f.per == "lane"}  # offsets in a lane record
+_LANE_NO_DATA = ["volume", "period_occupancy", "period_speed", "flow", "density", "time_mean_speed", "speed85", "headway"]
 _DI_SIZE = table_size("di")
 _IR_SIZE = table_size("ir")
 
@@ -237,19 +242,19 @@ def encode_snapshot(snapshot: DetectorSnapshot, layout: Layout) -> RegisterImage
     di[DI_FAILSAFE] = any(faults >> int(f) & 1 for f in FAILSAFE_FAULTS)
 
     major, minor, patch = firmware_version()
-    ir[STATUS + 1] = faults
-    ir[STATUS + 2] = (major & 0xFF) << 8 | (minor & 0xFF)
-    ir[STATUS + 3] = patch
-    _put32(ir, STATUS + 4, int(max(snapshot.uptime_s, 0)))
-    ir[STATUS + 6] = len(layout.channels)
-    ir[STATUS + 7] = max(layout.channels, default=0)
-    ir[STATUS + 8] = len(layout.lanes)
-    ir[STATUS + 9] = len(layout.class_names)
-    ir[STATUS + 10] = _u16(snapshot.fps, 10)
-    ir[STATUS + 11] = _u16(snapshot.tracked_vehicles)
-    ir[STATUS + 12] = snapshot.dropped_frames & 0xFFFF
-    ir[STATUS + 13] = MAP_VERSION
-    _put32(ir, STATUS + 14, int(max(snapshot.wall, 0)))
+    ir[_IR["health"]] = faults
+    ir[_IR["firmware"]] = (major & 0xFF) << 8 | (minor & 0xFF)
+    ir[_IR["firmware_patch"]] = patch
+    _put32(ir, _IR["uptime"], int(max(snapshot.uptime_s, 0)))
+    ir[_IR["channels"]] = len(layout.channels)
+    ir[_IR["max_channel"]] = max(layout.channels, default=0)
+    ir[_IR["lanes"]] = len(layout.lanes)
+    ir[_IR["classes"]] = len(layout.class_names)
+    ir[_IR["fps"]] = _u16(snapshot.fps, 10)
+    ir[_IR["tracked"]] = _u16(snapshot.tracked_vehicles)
+    ir[_IR["dropped"]] = snapshot.dropped_frames & 0xFFFF
+    ir[_IR["map_version"]] = MAP_VERSION
+    _put32(ir, _IR["wall"], int(max(snapshot.wall, 0)))
 
     ir[CH_SPEED : CH_SPEED + MAX_CHANNELS] = NO_DATA
     ir[CH_LENGTH : CH_LENGTH + MAX_CHANNELS] = NO_DATA
@@ -271,40 +276,39 @@ def encode_snapshot(snapshot: DetectorSnapshot, layout: Layout) -> RegisterImage
 
 
 def _encode_period(ir: np.ndarray, snapshot: DetectorSnapshot, layout: Layout) -> None:
-    ir[PERIOD] = snapshot.period_seq & 0xFF
+    ir[_IR["period_seq"]] = snapshot.period_seq & 0xFF
     by_lane = {agg.lane: agg for agg in snapshot.last_period}
     slots = ir[LANES : LANES + MAX_LANES * LANE_STRIDE].reshape(MAX_LANES, LANE_STRIDE)  # a view
-    slots[:, 1:10] = NO_DATA
-    slots[:, 4] = 0
+    slots[:, [_LANE[n] for n in _LANE_NO_DATA]] = NO_DATA
     if not by_lane:
         return
     first = next(iter(by_lane.values()))
-    ir[PERIOD + 1] = _u16(first.period_s)
-    _put32(ir, PERIOD + 2, int(first.period_start))
-    ir[PERIOD + 4] = len(layout.lanes)
+    ir[_IR["period_length"]] = _u16(first.period_s)
+    _put32(ir, _IR["period_start"], int(first.period_start))
+    ir[_IR["period_lanes"]] = len(layout.lanes)
     period_faults = 0
     for slot, lane in enumerate(layout.lanes):
         base = LANES + slot * LANE_STRIDE
-        ir[base] = lane
+        ir[base + _LANE["lane_id"]] = lane
         agg = by_lane.get(lane)
         if agg is None:
             continue
         period_faults |= agg.quality
         code = fault_code(agg.quality)
-        ir[base + 1] = min(_u16(agg.count), NO_DATA - 1)
-        ir[base + 2] = FAULT_FLAG | code if code else _u16(agg.occupancy_pct, 10)
-        ir[base + 3] = _u16(agg.speed_kmh, 10)
-        ir[base + 4] = code
-        ir[base + 5] = _u16(agg.flow_vph)
-        ir[base + 6] = _u16(agg.density_vpkm, 10)
-        ir[base + 7] = _u16(agg.time_mean_speed_kmh, 10)
-        ir[base + 8] = _u16(agg.speed85_kmh, 10)
-        ir[base + 9] = _u16(agg.headway_s, 10)
-        ir[base + 10] = int(agg.partial)
-        ir[base + 11] = agg.quality & 0xFFFF
+        ir[base + _LANE["volume"]] = min(_u16(agg.count), NO_DATA - 1)
+        ir[base + _LANE["period_occupancy"]] = FAULT_FLAG | code if code else _u16(agg.occupancy_pct, 10)
+        ir[base + _LANE["period_speed"]] = _u16(agg.speed_kmh, 10)
+        ir[base + _LANE["fault_code"]] = code
+        ir[base + _LANE["flow"]] = _u16(agg.flow_vph)
+        ir[base + _LANE["density"]] = _u16(agg.density_vpkm, 10)
+        ir[base + _LANE["time_mean_speed"]] = _u16(agg.time_mean_speed_kmh, 10)
+        ir[base + _LANE["speed85"]] = _u16(agg.speed85_kmh, 10)
+        ir[base + _LANE["headway"]] = _u16(agg.headway_s, 10)
+        ir[base + _LANE["partial"]] = int(agg.partial)
+        ir[base + _LANE["quality"]] = agg.quality & 0xFFFF
         for k, name in enumerate(layout.class_names):
-            ir[base + 12 + k] = int(agg.class_counts.get(name, 0)) & 0xFFFF
-    ir[PERIOD + 5] = period_faults & 0xFFFF
+            ir[base + _LANE[f"period_class{k}"]] = int(agg.class_counts.get(name, 0)) & 0xFFFF
+    ir[_IR["period_faults"]] = period_faults & 0xFFFF
 
 
 class PulseShaper:
@@ -413,6 +417,10 @@ def markdown(layout: Layout | None = None) -> str:
         "FUNCTION unless `outputs.allow_writes = true`. Modbus TCP answers its unit id (and 0/255, the",
         "usual TCP wildcards) and returns exception 0B for other unit ids; Modbus RTU answers only its",
         "unit id and stays silent for every other id on the bus.",
+        "",
+        "A typical controller poll: FC 2 at 0 (one call bit per channel); FC 4 at "
+        f"{CH_COUNT} (rolling counts); FC 4 at {PERIOD} (period header) and at {LANES} ({LANE_STRIDE} registers per lane);",
+        "FC 4 at 0 (heartbeat, health) to supervise the detector.",
         "",
         "Fault codes:",
         "",

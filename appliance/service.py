@@ -66,6 +66,7 @@ class ServiceHooks:
     notifier: Notifier = field(default_factory=_NullNotifier)
     make_pipeline: Callable[[SiteConfig], Any] | None = None
     make_measures: Callable[[SiteConfig], Any] | None = None
+    before_stop: Callable[["Service"], None] | None = None  # called with outputs still serving
 
 
 def _default_pipeline(site: SiteConfig):
@@ -428,6 +429,8 @@ class Service:
                     self._idle()
                     continue
                 self._process(frame)
+            if self.hooks.before_stop is not None:
+                self.hooks.before_stop(self)
         except Exception:
             if self._resumed_from_checkpoint and self.store is not None:
                 # a checkpoint that cannot be continued must not make every restart fail

@@ -230,13 +230,9 @@ class Store:
     # -- retention ---------------------------------------------------------------------------
 
     def size_mb(self) -> float:
-        total = 0
-        for suffix in ("", "-wal"):
-            p = Path(str(self.path) + suffix)
-            if p.exists():
-                total += p.stat().st_size
-        free = self.db.execute("PRAGMA freelist_count").fetchone()[0] * self.db.execute("PRAGMA page_size").fetchone()[0]
-        return (total - free) / 1e6
+        """Pages in use (not counting free pages or the WAL), in MB."""
+        q = lambda pragma: self.db.execute(f"PRAGMA {pragma}").fetchone()[0]  # noqa: E731
+        return (q("page_count") - q("freelist_count")) * q("page_size") / 1e6
 
     def prune(self, retention_days: float, max_mb: float, now: float | None = None) -> int:
         """Delete rows older than retention_days, then the oldest detail rows (events, vehicles,

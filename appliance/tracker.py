@@ -131,7 +131,12 @@ def track_step(img, Hm, Hinv, off_x, off_y, dt, alive, px, s, P, tmpl, age, miss
         u, v = _project(Hinv, X, Y)
         u += off_x
         v += off_y
-        r = radius if age[i] >= 3 else 2 * radius
+        # search radius from the predicted position's uncertainty in pixels (3 sigma), capped
+        ua, va = _project(Hinv, X + np.sqrt(Pp[0, 0]), Y)
+        ub, vb = _project(Hinv, X, Y + np.sqrt(Pp[1, 1]))
+        sig_px = max(abs(ua + off_x - u) + abs(va + off_y - v), abs(ub + off_x - u) + abs(vb + off_y - v))
+        r_cap = radius if age[i] >= 3 else 2 * radius
+        r = min(r_cap, max(2, int(np.ceil(3.0 * sig_px + 1.0))))
         cx = int(np.floor(u + 0.5))
         cy = int(np.floor(v + 0.5))
         if not (np.isfinite(u) and np.isfinite(v)) or cx - r - h - 1 < 0 or cy - r - h - 1 < 0 \

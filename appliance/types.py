@@ -39,6 +39,9 @@ class VehicleState:
     length: float  # length estimate (m)
     n_features: int
     finished: bool = False  # True once, when the vehicle is finalised at the exit zone
+    # optional: its earlier (t, x, y_front) points, given with a vehicle's first report so that the
+    # measures can count a line crossed before the vehicle was reported
+    trajectory: list[tuple[float, float, float]] | None = None
 
 
 @dataclass(slots=True)

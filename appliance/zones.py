@@ -14,7 +14,7 @@ import numpy as np
 from appliance.config import SiteConfig, clip_polygon_y
 from appliance.geometry import Homography
 
-DETECTION_ROW_SHARE = 0.55  # entry share of the lane's image rows where features are detected
+DETECTION_ROW_SHARE = 0.7  # share of the rows between the entry edge and the count line where features start
 EXIT_ROW_SHARE = 0.12  # exit share of the lane's image rows where vehicles are finalised
 
 
@@ -45,19 +45,24 @@ def _y_at_row(H: Homography, poly_px: np.ndarray, row: float) -> float:
     return float(H.img_to_road([[cx, row]])[0, 1])
 
 
-def _default_ranges(H: Homography, poly_px: np.ndarray, ylo: float, yhi: float, sign: int):
+def _default_ranges(H: Homography, poly_px: np.ndarray, ylo: float, yhi: float, sign: int, count_y: float):
+    """Detection from the entry edge to DETECTION_ROW_SHARE of the way (in image rows) to the count line, so
+    vehicles are grouped before they are counted; exit over the last EXIT_ROW_SHARE of the lane's rows."""
     top, bottom = float(poly_px[:, 1].min()), float(poly_px[:, 1].max())
     span = bottom - top
-    far_det = _y_at_row(H, poly_px, top + DETECTION_ROW_SHARE * span)
-    near_det = _y_at_row(H, poly_px, bottom - DETECTION_ROW_SHARE * span)
+    cx = float(poly_px[:, 0].mean())
+    count_row = float(H.road_to_img([[float(H.img_to_road([[cx, 0.5 * (top + bottom)]])[0, 0]), count_y]])[0, 1])
+    count_row = min(max(count_row, top), bottom)
     far_exit = _y_at_row(H, poly_px, top + EXIT_ROW_SHARE * span)
     near_exit = _y_at_row(H, poly_px, bottom - EXIT_ROW_SHARE * span)
-    if sign < 0:  # approaching: detect at the far end, finalise near the camera
-        det = (max(ylo, min(far_det, yhi)), yhi)
-        ext = (ylo, max(ylo, min(near_exit, yhi)))
+    if sign < 0:  # approaching: enters at the top (far), detect there, finalise near the camera
+        det_end = _y_at_row(H, poly_px, top + DETECTION_ROW_SHARE * max(count_row - top, 0.2 * span))
+        det = (max(ylo, min(det_end, yhi - 1.0)), yhi)
+        ext = (ylo, max(ylo + 0.5, min(near_exit, yhi)))
     else:
-        det = (ylo, min(yhi, max(near_det, ylo)))
-        ext = (min(yhi, max(far_exit, ylo)), yhi)
+        det_end = _y_at_row(H, poly_px, bottom - DETECTION_ROW_SHARE * max(bottom - count_row, 0.2 * span))
+        det = (ylo, min(yhi, max(det_end, ylo + 1.0)))
+        ext = (min(yhi - 0.5, max(far_exit, ylo)), yhi)
     return det, ext
 
 
@@ -83,12 +88,12 @@ class SiteZones:
             ylo, yhi = float(poly[:, 1].min()), float(poly[:, 1].max())
             sign = -1 if lane.direction == "approaching" else 1
             poly_px = H.road_to_img(poly)
-            det, ext = _default_ranges(H, poly_px, ylo, yhi, sign)
+            count_y = float(lane.count_y_m) if lane.count_y_m is not None else 0.5 * (ylo + yhi)
+            det, ext = _default_ranges(H, poly_px, ylo, yhi, sign, count_y)
             if lane.detection_y_m is not None:
                 det = (float(lane.detection_y_m[0]), float(lane.detection_y_m[1]))
             if lane.exit_y_m is not None:
                 ext = (float(lane.exit_y_m[0]), float(lane.exit_y_m[1]))
-            count_y = float(lane.count_y_m) if lane.count_y_m is not None else 0.5 * (ylo + yhi)
             self.lanes.append(
                 LaneZones(
                     lane_id=lane.id,

@@ -10,11 +10,14 @@ import time
 
 import numpy as np
 from pymodbus.constants import ExcCodes
-from pymodbus.exceptions import NoSuchIdException
+from pymodbus.exceptions import ModbusIOException, NoSuchIdException
 from pymodbus.framer import FramerRTU, FramerType
+from pymodbus.pdu import ExceptionResponse
+from pymodbus.pdu.device import ModbusDeviceIdentification
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.server.requesthandler import ServerRequestHandler
 from pymodbus.simulator import DataType, SimData, SimDevice
+from pymodbus.transaction import TransactionManager
 
 from appliance import registers as rg
 from appliance.config import SiteConfig
@@ -30,8 +33,9 @@ _WRITE_REGS = {6, 16, 23}
 class RegisterStore:
     """The datastore both servers read: latest encoded image, heartbeat, force-call timers.
 
-    ``publish`` runs in the frame-loop thread and only swaps a reference; the async methods run
-    in the server thread (pymodbus calls them as its context)."""
+    ``publish`` runs in the frame-loop thread: it encodes the snapshot (~0.2 ms) and swaps the
+    image reference; the async methods run in the server thread (pymodbus calls them as its
+    context) and only read the current image."""
 
     def __init__(self, site: SiteConfig, unit_ids: set[int] | None = None):
         self.layout = rg.Layout.from_site(site)
@@ -45,17 +49,20 @@ class RegisterStore:
         self.image = rg.encode_snapshot(_empty_snapshot(), self.layout)
         self.heartbeat = 0
         self.force_until = np.zeros(rg.MAX_CHANNELS, dtype=np.float64)  # monotonic
+        self.force_set = np.zeros(rg.MAX_CHANNELS, dtype=np.float64)  # when it was written
         self.commands: CommandSink | None = None
-        self.published_at = 0.0  # perf_counter of the last publish (latency bench)
         self._lock = threading.Lock()
 
     # frame-loop side ---------------------------------------------------------------------
     def publish(self, snapshot: DetectorSnapshot) -> None:
         image = rg.encode_snapshot(snapshot, self.layout)
+        now = time.monotonic()
+        # a force cancelled elsewhere (status tool, reload) reads 0; allow the service a second to apply ours
+        lapsed = (self.force_until > now) & ~image.di[rg.DI_FORCED : rg.DI_FORCED + rg.MAX_CHANNELS] & (now - self.force_set > 1.0)
+        self.force_until[lapsed] = 0.0
         with self._lock:
-            self.pulses.update(image, time.monotonic())
+            self.pulses.update(image, now)
             self.image = image
-            self.published_at = time.perf_counter()
 
     # server side -------------------------------------------------------------------------
     def device_ids(self) -> list[int]:
@@ -116,6 +123,7 @@ class RegisterStore:
         for i, v in zip(idx, values):
             seconds = min(float(v), self.force_max_s)
             self.force_until[i] = now + seconds if seconds > 0 else 0.0
+            self.force_set[i] = now
             if self.commands is not None:
                 self.commands.force_call(int(i) + 1, seconds)
         return None
@@ -160,6 +168,11 @@ class _ModbusOutput:
     def start(self, commands: CommandSink) -> None:
         """Start serving in a background thread; returns once listening (raises if it cannot)."""
         self.store.commands = commands
+        pm = logging.getLogger("pymodbus")
+        if pm.level == logging.NOTSET:
+            # pymodbus logs every malformed or foreign request at ERROR with a frame dump; on a
+            # field bus that is line noise, not a detector fault (set a level to see it).
+            pm.setLevel(logging.CRITICAL)
         self._started.clear()
         self._error = None
         self._thread = threading.Thread(target=self._run, name=f"roadwatch-{self.name.rsplit('.', 1)[-1]}", daemon=True)
@@ -228,8 +241,8 @@ class ModbusTcpOutput(_ModbusOutput):
 
     def _make_server(self):
         cfg = self.site.outputs.modbus_tcp
-        return ModbusTcpServer(_placeholder(), framer=FramerType.SOCKET, address=(cfg.host, cfg.port),
-                               trace_packet=_ExceptionFixer(rtu=False))
+        return _TcpServer(_placeholder(), framer=FramerType.SOCKET, address=(cfg.host, cfg.port),
+                               identity=_identity(), trace_packet=_ExceptionFixer(rtu=False))
 
 
 class ModbusRtuOutput(_ModbusOutput):
@@ -254,6 +267,7 @@ class ModbusRtuOutput(_ModbusOutput):
         return _RtuServer(
             _placeholder(),
             framer=FramerType.RTU,
+            identity=_identity(),
             port=cfg.port,
             baudrate=cfg.baudrate,
             parity=cfg.parity,
@@ -316,11 +330,62 @@ class _GapHandler(ServerRequestHandler):
         super().data_received(data)
 
 
+class _TcpHandler(ServerRequestHandler):
+    """Answers every complete request in a received chunk, each with its own PDU. pymodbus 3.16
+    handles only the first and keeps the rest until more bytes arrive, which leaves a master whose
+    requests were coalesced (a retry after a stall, or pipelining) one answer behind for good."""
+
+    def callback_data(self, data: bytes, addr: tuple | None = None) -> int:
+        used = 0
+        while used < len(data):
+            try:
+                n = TransactionManager.callback_data(self, data[used:], addr)
+            except ModbusIOException as exc:  # undecodable request: exception 0x80, fixed by _ExceptionFixer
+                response = ExceptionResponse(exc.fcode or 0, exception_code=ExcCodes.ILLEGAL_FUNCTION,
+                                             device_id=exc.dev_id, transaction=exc.transaction_id)
+                self.server_send(response, addr)
+                return len(data)
+            if not n:
+                break
+            used += n
+            if self.last_pdu:
+                asyncio.ensure_future(self._answer(self.last_pdu, self.last_addr))
+        return used
+
+    async def _answer(self, pdu, addr) -> None:
+        try:
+            response = await pdu.datastore_update(self.server.context, pdu.dev_id)
+        except NoSuchIdException:
+            response = ExceptionResponse(pdu.function_code, ExcCodes.GATEWAY_NO_RESPONSE)
+        except Exception as e:  # noqa: BLE001 - a bad request must not stop the server
+            log.warning("modbus request %s failed: %s", pdu, e)
+            response = ExceptionResponse(pdu.function_code, ExcCodes.DEVICE_FAILURE)
+        response.transaction_id = pdu.transaction_id
+        response.dev_id = pdu.dev_id
+        self.server_send(response, addr)
+
+
+class _TcpServer(ModbusTcpServer):
+    def callback_new_connection(self):
+        return _TcpHandler(self, self.trace_packet, self.trace_pdu, self.trace_connect)
+
+
 class _RtuServer(ModbusSerialServer):
     def callback_new_connection(self):
         handler = _GapHandler(self, self.trace_packet, self.trace_pdu, self.trace_connect)
         handler.gap_s = rtu_gap_s(self.comm_params.baudrate or 19200)
         return handler
+
+
+def _identity() -> ModbusDeviceIdentification:
+    """What FC 43/14 (read device identification) reports."""
+    return ModbusDeviceIdentification(info_name={
+        "VendorName": "Roadwatch",
+        "ProductCode": "RW-VD",
+        "MajorMinorRevision": ".".join(str(v) for v in rg.firmware_version()),
+        "ProductName": "Roadwatch video vehicle detector",
+        "ModelName": f"loop emulation, register map v{rg.MAP_VERSION}",
+    })
 
 
 def _placeholder() -> SimDevice:

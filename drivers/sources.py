@@ -172,6 +172,8 @@ class ReconnectingSource:
         self.connected = False
         self.reconnects = 0
         self._stop = threading.Event()
+        self._seq = 0
+        self._io = threading.Lock()  # the capture is never released while another thread reads it
         # realtime sources drop frames when processing falls behind; others are processed fully
         self.realtime = (live or cfg.realtime) if realtime is None else realtime
 
@@ -182,8 +184,12 @@ class ReconnectingSource:
         except SourceError as e:
             log.warning("%s", e)
             return False
-        self.inner = src
-        self.connected = True
+        with self._io:
+            if self._stop.is_set():
+                src.close()
+                return False
+            self.inner = src
+            self.connected = True
         return True
 
     def open(self) -> None:
@@ -199,12 +205,18 @@ class ReconnectingSource:
         backoff = 0.5
         while not self._stop.is_set():
             if self.inner is not None:
-                frame = self.inner.read()
-                if frame is not None:
-                    return frame
-                self.inner.close()
-                self.inner = None
-                self.connected = False
+                with self._io:
+                    if self._stop.is_set() or self.inner is None:
+                        return None
+                    frame = self.inner.read()
+                    if frame is not None:
+                        if self.live:  # sequence numbers continue across reconnects
+                            self._seq += 1
+                            frame.seq = self._seq
+                        return frame
+                    self.inner.close()
+                    self.inner = None
+                    self.connected = False
                 if not self.live and not self.loop:
                     return None
                 if self.live:
@@ -222,10 +234,12 @@ class ReconnectingSource:
         return None
 
     def close(self) -> None:
+        """Stop; waits for a read in progress in another thread (at most the read timeout)."""
         self._stop.set()
-        if self.inner is not None:
-            self.inner.close()
-            self.inner = None
+        with self._io:
+            if self.inner is not None:
+                self.inner.close()
+                self.inner = None
         self.connected = False
 
 

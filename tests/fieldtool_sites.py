@@ -123,5 +123,7 @@ def fill_store(path, seconds: float = 1200.0, seed: int = 1, period_s: int = 300
             aggs.append(a)
             written[(lane, START + p0)] = a
         store.write_periods(aggs, written_wall=START + seconds)
+    store.write_health(START + 400.0, "CAMERA_LOST", True, "rtsp timeout")
+    store.write_health(START + 412.0, "CAMERA_LOST", False, "reconnected")
     store.close()
     return written

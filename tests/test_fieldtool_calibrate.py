@@ -130,6 +130,19 @@ def test_nearly_collinear_points_are_warned_and_collinear_refused() -> None:
         fit_homography(Correspondences(TRUE.road_to_img(line).tolist(), line))
 
 
+def test_four_points_with_a_typo_show_as_inverted_perspective() -> None:
+    # 4 points always fit exactly, so a typo cannot show as an error; a gross one (a decimal
+    # slip, 3.5 -> 35) shows as an inverted perspective. Subtle ones cannot be seen: hence the note.
+    road = [[-3.5, 12.0], [3.5, 12.0], [-3.5, 45.0], [3.5, 45.0]]
+    img = TRUE.road_to_img(road)
+    typo = [road[0], [35.0, 12.0]] + road[2:]
+    res = check(fit_homography(Correspondences(img.tolist(), typo)), Correspondences(img.tolist(), typo), (640, 480))
+    assert any("inverted perspective" in w for w in res.warnings), res.warnings
+    assert any("exactly 4 points" in n for n in res.notes)
+    ok = check(TRUE, Correspondences(img.tolist(), road), (640, 480))
+    assert ok.warnings == []
+
+
 def test_horizon_through_a_zone_is_warned() -> None:
     corr = Correspondences(TRUE.road_to_img(ROAD).tolist(), ROAD)
     hr = TRUE.horizon_row(320.0)

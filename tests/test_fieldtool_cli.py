@@ -116,3 +116,22 @@ def test_status_table_shows_faults_calls_and_last_period() -> None:
     assert "  2 L2          2 .            0    0.0      -      -" in text
     assert "last period 2026-01-01T00:00:00Z (300.0 s)" in text and "partial" in text
     assert "lane 1: 4  lane 2: 0" in text
+
+
+def test_status_since_start_column() -> None:
+    from tools.fieldtool.status import format_status
+
+    before = {"channels": [{"channel": 1, "loop_id": "L1", "lane": 1, "count": 65530}], "lanes": {"1": 10}}
+    now = {"channels": [{"channel": 1, "loop_id": "L1", "lane": 1, "count": 65537}], "lanes": {"1": 17}}
+    text = format_status(now, before)
+    assert "since" in text.splitlines()[4]
+    assert "   +7  " in text and "lane 1: +7" in text
+
+
+def test_snapshot_from_a_dead_stream_times_out(tmp_path, port) -> None:
+    p = tmp_path / "site.toml"
+    p.write_text(tomli_w.dumps({"source": {"url": f"rtsp://127.0.0.1:{port}/cam", "open_timeout_s": 0.5,
+                                           "read_timeout_s": 0.5}}))
+    res = CliRunner().invoke(cli, ["snapshot", "-c", str(p), "-o", str(tmp_path / "x.png")])
+    assert res.exit_code != 0 and "no frame within 1 s" in res.output and "cannot open" in res.output
+    assert not (tmp_path / "x.png").exists()

@@ -96,6 +96,13 @@ def test_snapshot_from_service(service, tmp_path) -> None:
     assert res.exit_code == 0, res.output
     img = cv2.imread(str(out))
     assert img.shape[:2] == (480, 640) and img.std() > 10
+    zones = tmp_path / "zones.png"
+    res = CliRunner().invoke(cli, ["zones", "render", "--from-service", "-c", str(service["config"]), "-o", str(zones)])
+    assert res.exit_code == 0, res.output
+    drawn = cv2.imread(str(zones)).astype(int)
+    # lane fill adds green where the live frame was grey: more green-dominant pixels than before
+    green = lambda im: int(((im[:, :, 1] - im[:, :, 2] > 40) & (im[:, :, 1] - im[:, :, 0] > 40)).sum())  # noqa: E731
+    assert green(drawn) > green(img.astype(int)) + 5000
 
 
 def test_apply_reloads_and_rejected_config_is_rolled_back(service, tmp_path) -> None:

@@ -65,6 +65,11 @@ def test_export_filters_lane_time_and_kinds(store, tmp_path) -> None:
                                     "--what", "vehicles", "--lane", "1", "--json", "--trajectories"]).stdout)
     assert all(v["trajectory"] for v in veh)
     assert abs(len(events) - written[(1, START)].count) <= 2
+    res = r.invoke(cli, ["export", "--db", str(path), "--from", "2026-01-01T00:06:00", "--to", "2026-01-01T00:07:00",
+                         "--what", "health", "--csv"])
+    health = list(csv.DictReader(io.StringIO(res.stdout)))
+    assert [(h["fault"], h["active"], h["wall_utc"]) for h in health] == [
+        ("CAMERA_LOST", "1", "2026-01-01T00:06:40Z"), ("CAMERA_LOST", "0", "2026-01-01T00:06:52Z")]
     res = r.invoke(cli, ["export", "--db", str(path), "--from", "yesterday"])
     assert res.exit_code != 0 and "neither ISO 8601" in res.output
     res = r.invoke(cli, ["export", "--db", str(tmp_path / "none.sqlite"), "--from", "0"])

@@ -128,6 +128,10 @@ def test_lane_outside_image_and_zone_edits(tmp_path) -> None:
     assert site.read_bytes() == good  # --out leaves CONFIG alone
     new = tomllib.loads((tmp_path / "new.toml").read_text())
     assert new["lanes"][1]["detection_y_m"] == [40.0, 48.0]
+    assert "past the exit zone" not in res.output
+    res = r.invoke(cli, ["zones", "lane", "2", "-c", str(tmp_path / "new.toml"), "--detection-y", "12", "16",
+                         "--exit-y", "40", "48"] + NO_SERVICE)
+    assert res.exit_code == 0 and "past the exit zone" in res.output  # reversed for an approaching lane
     res = r.invoke(cli, ["zones", "fiducials", "-c", str(tmp_path / "new.toml"), "320,300"] + NO_SERVICE)
     assert res.exit_code == 0 and "fiducial F1" in res.output and "is on lane" in res.output
 

@@ -198,8 +198,13 @@ def test_flush_gives_partial_current_period():
     site = make_site()
     tm, periods, _, _ = run(site, 100.0, speed=20.0, headway=3.0, length=4.5, lane=1)
     assert periods == []
+    tm.add_quality(1 << 3)
     flushed = tm.flush(EPOCH + 100)
     assert len(flushed) == 2 and all(p.partial for p in flushed)
+    assert all(p.quality == 8 for p in flushed)
+    # observed 100 s of the period: rates are per observed time (3 s headway -> 1200 veh/h at most)
+    assert flushed[0].flow_vph == pytest.approx(flushed[0].density_vpkm * flushed[0].speed_kmh, rel=1e-9)
+    assert 900 < flushed[0].flow_vph < 1200
     assert flushed[0].count == tm.live_lane_counts()[1] > 0
 
 
@@ -219,3 +224,39 @@ def test_lane_kernel_matches_reference():
     assert set(np.unique(ref)) == {0, 1, 2}  # all three outcomes were exercised
     # lane 1 ends at y = 10: a lane-1 vehicle below that end is still in lane 1, not lane 2
     assert lm.lanes_at(np.array([-2.5]), np.array([8.0]))[0] == 1
+
+
+def test_vehicle_reported_late_or_once_counts_from_its_trajectory():
+    site = make_site()
+    tm = TrafficMeasures(site)
+    # seen only once, as finished, below the count line (50 m), carrying its history from 70 m
+    traj = [(i * 0.1, -2.5, 70.0 - 2.0 * i) for i in range(20)]  # 70 -> 32 m
+    v = VehicleState(5, 2.0, -2.5, 30.0, 34.5, 0.0, -20.0, 4.5, 6, finished=True, trajectory=traj)
+    upd = tm.step(2.0, EPOCH + 2.0, [v])
+    assert [c.lane for c in upd.crossings] == [1]
+    assert upd.crossings[0].t == pytest.approx(1.0)  # 70 - 20 m/s * 1 s = 50 m
+    assert len(upd.vehicles) == 1
+    # the same vehicle without a history does not count: one point spans nothing
+    tm2 = TrafficMeasures(site)
+    v2 = VehicleState(5, 2.0, -2.5, 30.0, 34.5, 0.0, -20.0, 4.5, 6, finished=True)
+    assert tm2.step(2.0, EPOCH + 2.0, [v2]).crossings == []
+
+
+def test_restart_after_an_outage_marks_periods_partial():
+    site = make_site(period_s=60)
+    traffic = dict(speed=20.0, headway=3.0, length=4.5, lane=1)
+    tm, _, _, _ = run(site, 30.0, **traffic)
+    saved = json.loads(json.dumps(tm.state()))
+    tm2 = TrafficMeasures(site)
+    tm2.restore(saved)
+    periods = []
+    for i in range(0, 25 * 40):  # back 150 s later, for 40 s
+        t = 180.0 + i / 25
+        periods += tm2.step(t, EPOCH + t, platoon_states(t, **traffic)).periods
+    starts = [p.period_start for p in periods if p.lane == 1]
+    assert starts == [EPOCH, EPOCH + 60, EPOCH + 120]
+    lane1 = [p for p in periods if p.lane == 1]
+    assert all(p.partial for p in lane1)
+    assert lane1[0].count == 10  # the 30 s seen before the outage, kept
+    assert lane1[0].flow_vph == pytest.approx(1200.0, rel=0.1)  # per observed time, not per 60 s
+    assert lane1[1].count == 0

@@ -57,7 +57,7 @@ def run_scene(preset: str, seed: int, seconds: float, period_s: float = 60.0):
 @pytest.mark.parametrize("preset,seed,seconds", [
     ("two-directions", 3, 130.0),
     ("shockwave", 1, 130.0),
-    ("dense", 2, 130.0),
+    pytest.param("dense", 2, 130.0, marks=pytest.mark.slow),
     pytest.param("stopped-queue", 4, 610.0, marks=pytest.mark.slow),
     pytest.param("trucks-and-buses", 5, 610.0, marks=pytest.mark.slow),
 ])

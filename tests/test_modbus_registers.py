@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -183,3 +184,12 @@ def test_registers_command_prints_the_map_for_a_config(tmp_path):
     res = subprocess.run([sys.executable, "-m", "tools.cli", "registers", "-c", str(bad)], cwd=REPO,
                          capture_output=True, text=True, timeout=60)
     assert res.returncode != 0 and "outputs.allow_writes" in res.stderr
+
+
+def test_registers_command_latency_bench(tmp_path):
+    path = tmp_path / "site.toml"
+    path.write_text(tomli_w.dumps(site_dict()), encoding="utf-8")
+    res = subprocess.run([sys.executable, "-m", "tools.cli", "registers", "-c", str(path), "--bench-latency", "20"],
+                         cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0, res.stderr
+    assert re.search(r"n=20: median [\d.]+ ms, p95 [\d.]+ ms, max [\d.]+ ms", res.stdout), res.stdout

@@ -164,6 +164,8 @@ def test_heartbeat_and_exceptions(tcp_server, port):
     rr = client.read_input_registers(0, count=1, device_id=9)  # another unit behind a gateway
     assert rr.isError() and rr.exception_code == 0x0B
     assert client.read_input_registers(rg.STATUS + 13, count=1, device_id=0).registers == [rg.MAP_VERSION]
+    info = client.read_device_information(device_id=1).information  # FC 43/14, basic objects
+    assert info[0] == b"Roadwatch" and info[2] == ".".join(map(str, rg.firmware_version())).encode()
     # over-long read (the pymodbus client refuses to build it, so raw bytes)
     with socket.create_connection(("127.0.0.1", port), timeout=3) as s:
         s.sendall(struct.pack(">HHHBBHH", 7, 0, 6, 1, 4, 0, 126))
@@ -234,3 +236,57 @@ def test_port_in_use_is_a_clear_error(port):
         out = ModbusTcpOutput(make_site(modbus_tcp={"enabled": True, "host": "127.0.0.1", "port": port}))
         with pytest.raises(RuntimeError, match=rf"outputs.modbus_tcp: cannot serve on 127.0.0.1:{port}"):
             out.start(Sink())
+
+
+def test_force_cancelled_elsewhere_reads_zero(tcp_server, port):
+    out, sink = tcp_server(allow_writes=True)
+    client = ModbusTcpClient("127.0.0.1", port=port, timeout=3)
+    assert client.connect()
+    assert not client.write_register(1, 100, device_id=1).isError()
+    out.publish(snapshot([ch(2, True, forced=False)]), [])  # the service has not applied it yet
+    assert client.read_holding_registers(1, count=1, device_id=1).registers[0] >= 99
+    out.publish(snapshot([ch(2, True, forced=True)]), [])
+    assert client.read_discrete_inputs(rg.DI_FORCED + 1, count=1, device_id=1).bits[0]
+    time.sleep(1.1)
+    out.publish(snapshot([ch(2, False, forced=False)]), [])  # cancelled by the local config tool
+    assert client.read_holding_registers(1, count=1, device_id=1).registers == [0]
+    client.close()
+
+
+def test_call_goes_on_within_one_frame_of_loop_entry(tcp_server, port):
+    """Entry-to-call latency, first part: the frame that shows the call is at most one frame period
+    after the exact moment the vehicle front enters the loop (the Modbus part is bench_call_latency)."""
+    out, _ = tcp_server()
+    client = ModbusTcpClient("127.0.0.1", port=port, timeout=3)
+    assert client.connect()
+    lane, speed, headway, _, phase = TRAFFIC[0]
+    loop_far_edge = 30.0 + 1.8  # loop L1 spans y 30..31.8 in lane 1; approaching vehicles enter at 31.8
+    prev, delays = False, []
+    for snap, evs in traffic_snapshots(make_site(), 60.0, start_wall=EPOCH):
+        out.publish(snap, evs)
+        call = next(c.call for c in snap.channels if c.channel == 1)
+        if call and not prev:
+            assert client.read_discrete_inputs(0, count=1, device_id=1).bits[0]  # readable right after publish
+            t = snap.uptime_s
+            j = np.floor((t - phase - (100.0 - loop_far_edge) / speed) / headway)
+            t_enter = phase + j * headway + (100.0 - loop_far_edge) / speed
+            delays.append(t - t_enter)
+        prev = call
+    assert len(delays) >= 18  # 60 s / 3.1 s headway
+    assert min(delays) >= -1e-9 and max(delays) <= 1.0 / FPS + 1e-9, delays
+    client.close()
+
+
+def test_coalesced_requests_are_all_answered(tcp_server, port):
+    """Two or more requests in one TCP segment (a master's retry after a stall, or pipelining)."""
+    out, _ = tcp_server()
+    out.publish(snapshot([ch(1, True, 11), ch(2, False, 22), ch(3, False, 33)]), [])
+    with socket.create_connection(("127.0.0.1", port), timeout=3) as s:
+        reqs = b"".join(struct.pack(">HHHBBHH", tid, 0, 6, 1, 4, rg.CH_COUNT + tid - 1, 1) for tid in (1, 2, 3))
+        s.sendall(reqs)
+        want = {tid: struct.pack(">HHHBBBH", tid, 0, 5, 1, 4, 2, 11 * tid) for tid in (1, 2, 3)}
+        buf, deadline = b"", time.monotonic() + 3
+        while len(buf) < sum(map(len, want.values())) and time.monotonic() < deadline:
+            buf += s.recv(256)
+    got = {struct.unpack(">H", buf[i : i + 2])[0]: buf[i : i + 11] for i in range(0, len(buf), 11)}
+    assert got == want

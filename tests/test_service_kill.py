@@ -124,10 +124,10 @@ def _check(tmp_path: Path, shared_data: Path, frames: int, period_s: int, kills:
 
 
 def test_sigkill_restart_keeps_every_period_exactly_once(tmp_path, shared_data) -> None:
-    # 300 frames (12 s) with 2 s periods: a checkpoint every 50 frames, so kills land in
+    # 200 frames (8 s) with 2 s periods: a checkpoint every 50 frames, so kills land in
     # start-up, mid-period and just after checkpoints.
     seed = random.randrange(1 << 30)
-    _check(tmp_path, shared_data, frames=300, period_s=2, kills=20, seed=seed)
+    _check(tmp_path, shared_data, frames=200, period_s=2, kills=20, seed=seed)
 
 
 @pytest.mark.slow

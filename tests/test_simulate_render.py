@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
@@ -71,11 +72,20 @@ def test_occluded_vehicle_has_lower_visible_fraction() -> None:
 
 def test_wind_drift_reaches_15px_per_minute() -> None:
     sc = Scene("wind-shake", 1)
-    d0 = np.array(sc.conditions.offset(0.0))
-    d60 = np.array(sc.conditions.offset(60.0))
-    shake = [np.array(sc.conditions.offset(0.0)) for _ in range(200)]
-    assert np.linalg.norm(d60 - d0) >= 15.0
-    assert 1.0 < np.std(shake, axis=0).max() < 10.0  # a few pixels of jitter
+    drift = np.array(sc.conditions.drift(60.0)) - np.array(sc.conditions.drift(0.0))
+    shake = np.array([sc.conditions.offset(0.0) for _ in range(300)])
+    assert np.linalg.norm(drift) >= 15.0
+    assert 1.0 < shake.std(axis=0).max() < 10.0  # a few pixels of jitter
+    # and the rendered image really moves: a static patch (the sign) shifts between two frames
+    a, _ = sc.render(want_truth=False)
+    sc.traffic.t = 60.0
+    b, _ = sc.render(want_truth=False)
+    o = next(o for o in sc.objects if o.name == "sign")
+    y0, x0 = o.y0 + 5, o.x0 + 5
+    tpl = a[y0 : y0 + 30, x0 : x0 + 40]
+    res = cv2.matchTemplate(b, tpl, cv2.TM_CCOEFF_NORMED)
+    _, _, _, (mx, my) = cv2.minMaxLoc(res)
+    assert np.hypot(mx - x0, my - y0) >= 8.0  # 20 px of drift minus a few px of shake either way
 
 
 @pytest.mark.parametrize("preset", ["night", "rain", "long-shadows", "trucks-and-buses", "stopped-queue"])
@@ -91,3 +101,15 @@ def test_condition_presets_render(preset: str) -> None:
         assert mean < 60  # dark scene
     else:
         assert 40 < mean < 200
+
+
+def test_day_to_night_darkens_and_switches_lights_on() -> None:
+    sc = Scene("day-to-night", 1, day_to_night=[0.0, 2.0], auto_gain=False, noise_sigma=0.0)
+    day, _ = sc.render(want_truth=False)
+    assert not sc.night_lights
+    for _ in range(75):
+        sc.step(0.04)
+    night, _ = sc.render(want_truth=False)
+    assert sc.night_lights
+    assert night.mean() < 0.4 * day.mean()  # night exposure is 0.28 of day; lamps and headlights add a little
+    assert night.max() >= 200  # lit headlights and lamp heads stay bright

@@ -224,6 +224,29 @@ def compare_with_counts(counts: dict, crossings: list[dict], tolerance_frames: i
     return cmp
 
 
+def loop_occupancy_vs_counts(counts: dict, loop_events: list[dict], fps: float | None = None) -> list[dict]:
+    """Per lane: the results' loop occupancy over the hand count's occupancy frame range, next to the
+    hand-count file's (mask-based) value."""
+    occ = counts.get("loop_occupancy") or {}
+    if not occ.get("lanes") or not occ.get("frames"):
+        return []
+    fps = fps or float(counts.get("fps", 25.0))
+    f0, f1 = occ["frames"]
+    t0, t1 = f0 / fps, (f1 + 1) / fps
+    rows = []
+    for zone in occ["lanes"]:
+        lane = int(zone["lane"])
+        evs = [e for e in loop_events if int(e["lane"]) == lane]
+        channels = sorted({int(e["channel"]) for e in evs})
+        if channels:
+            evs = [e for e in evs if int(e["channel"]) == channels[0]]
+        on = sum(max(0.0, min(float(e["t_off"]), t1) - max(float(e["t_on"]), t0)) for e in evs)
+        rows.append({"lane": lane, "hand_pct": 100.0 * float(zone["occupancy"]), "result_pct": 100.0 * on / (t1 - t0),
+                     "hand_runs": zone.get("occupancy_runs"),
+                     "result_runs": sum(1 for e in evs if float(e["t_off"]) > t0 and float(e["t_on"]) < t1)})
+    return rows
+
+
 def format_count_report(cmp: CountComparison) -> str:
     lines = [f"  {'lane':>4} {'hand':>5} {'result':>6} {'matched':>7} {'missed':>6} {'extra':>5} {'diff':>5}"]
     for lane, d in sorted(cmp.per_lane.items()):
@@ -248,11 +271,14 @@ def format_count_report(cmp: CountComparison) -> str:
               help="hand-count file (counts.json)")
 @click.option("--tolerance", type=int, default=4, show_default=True, help="frames for a hand-count match")
 @click.option("--complete-only", is_flag=True, help="ignore partial periods")
+@click.option("--frames", "frame_range", default=None, metavar="FIRST:LAST",
+              help="hand counts: compare only crossings in this frame range (e.g. a partial replay)")
 @click.option("--plot", "plot_png", type=click.Path(dir_okay=False), default=None, help="scatter plot PNG (Fig. 7)")
 @click.option("--errors-png", type=click.Path(dir_okay=False), default=None, help="Table-1 error distribution PNG")
 @click.option("--time-space", "ts_png", type=click.Path(dir_okay=False), default=None,
               help="time-space diagram PNG (Fig. 6)")
-def evaluate(results_path, truth_dir, counts_path, tolerance, complete_only, plot_png, errors_png, ts_png) -> None:
+def evaluate(results_path, truth_dir, counts_path, tolerance, complete_only, frame_range, plot_png, errors_png,
+             ts_png) -> None:
     """Compare replay results with simulator truth (--truth) or a hand count (--counts)."""
     if (truth_dir is None) == (counts_path is None):
         raise click.UsageError("give exactly one of --truth DIR or --counts counts.json")
@@ -275,7 +301,8 @@ def evaluate(results_path, truth_dir, counts_path, tolerance, complete_only, plo
                 click.echo(f"wrote {errors_png}")
             if ts_png:
                 plots.time_space(truth["vehicles_path"], results.get("crossings", []), ts_png,
-                                 start_wall=float(truth["meta"].get("start_wall", 0.0)))
+                                 start_wall=float(truth["meta"].get("start_wall", 0.0)),
+                                 measured=results.get("vehicles", []))
                 click.echo(f"wrote {ts_png}")
         else:
             from tools.handcount import HandCountError, load_counts
@@ -284,9 +311,25 @@ def evaluate(results_path, truth_dir, counts_path, tolerance, complete_only, plo
                 counts = load_counts(counts_path)
             except HandCountError as e:
                 raise EvaluateError(str(e)) from None
-            cmp = compare_with_counts(counts, results["crossings"], tolerance)
+            rng = None
+            if frame_range:
+                try:
+                    lo, hi = (int(x) for x in frame_range.split(":"))
+                except ValueError:
+                    raise click.BadParameter(f"{frame_range!r} is not FIRST:LAST", param_hint="--frames") from None
+                rng = (lo, hi)
+            if not results["crossings"]:
+                raise EvaluateError(f"{results_path}: holds no count-line crossings (write it with roadwatch replay)")
+            cmp = compare_with_counts(counts, results["crossings"], tolerance, frame_range=rng)
             click.echo(f"Crossings vs hand count ({counts_path}, match = same lane within {tolerance} frames):")
             click.echo(format_count_report(cmp))
+            occ = loop_occupancy_vs_counts(counts, results.get("loop_events", []))
+            if occ and results.get("loop_events"):
+                click.echo("\nLoop-zone occupancy over the hand count's frame range (hand = from the masks; "
+                           "image-based, so higher than a loop's):")
+                for row in occ:
+                    click.echo(f"  lane {row['lane']}: result {row['result_pct']:.1f} % ({row['result_runs']} actuations), "
+                               f"hand {row['hand_pct']:.1f} % ({row['hand_runs']} runs)")
             if plot_png or ts_png or errors_png:
                 click.echo("(plots are made for --truth comparisons only)", err=True)
     except EvaluateError as e:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 from pathlib import Path
 
 import matplotlib
@@ -55,8 +56,9 @@ def scatter_periods(pairs: list[tuple[dict, dict]], png: str) -> None:
 
 
 def time_space(vehicles_csv: str | Path, crossings: list[dict], png: str, start_wall: float = 0.0,
-               max_vehicles: int = 3000) -> None:
-    """Front trajectories (t, Y) per lane from the truth, with the measured count-line crossings."""
+               max_vehicles: int = 3000, measured: list[dict] | None = None) -> None:
+    """Front trajectories (t, Y) per lane from the truth (grey) and measured (red, when the results
+    hold vehicle trajectories), with the measured count-line crossings (like the paper's Fig. 6)."""
     lanes: dict[int, dict[int, list[tuple[float, float]]]] = {}
     with open(vehicles_csv, newline="") as f:
         for row in csv.DictReader(f):
@@ -70,6 +72,13 @@ def time_space(vehicles_csv: str | Path, crossings: list[dict], png: str, start_
         for traj in lanes[lane].values():
             a = np.array(traj)
             ax.plot(a[:, 0], a[:, 1], "-", lw=0.6, color="0.3")
+        for v in measured or []:
+            traj = v.get("trajectory")
+            if isinstance(traj, str):
+                traj = json.loads(traj)
+            if traj and int(v.get("lane") or 0) == lane:
+                a = np.asarray(traj, dtype=float)
+                ax.plot(a[:, 0], a[:, 2], "-", lw=0.9, color="tab:red", alpha=0.8)
         cr = [c for c in crossings if int(c["lane"]) == lane]
         if cr:
             t = np.array([float(c["wall"]) - start_wall for c in cr])

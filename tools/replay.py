@@ -66,6 +66,7 @@ class VideoFrames:
         if not self.cap.isOpened():
             raise ReplayError(f"{self.video}: cannot be opened as a video or image sequence")
         self.sequence = is_image_sequence(self.video)
+        self.use_msec = fps is None and not self.sequence  # a given --fps overrides the container's clock
         native = self.cap.get(cv2.CAP_PROP_FPS)
         if fps is not None:
             self.fps = float(fps)
@@ -93,7 +94,7 @@ class VideoFrames:
                     f"{self.site.source.width}x{self.site.source.height}"
                 )
         t = self.seq / self.fps
-        if not self.sequence:
+        if self.use_msec:
             ms = self.cap.get(cv2.CAP_PROP_POS_MSEC)
             # sane: finite, increasing, and within a second of the nominal frame clock
             if ms is not None and math.isfinite(ms) and ms / 1000.0 > self.last_t and abs(ms / 1000.0 - t) < 1.0:
@@ -125,6 +126,7 @@ def replay_video(
     progress: bool = False,
     max_frames: int | None = None,
     pipeline_factory: Callable | None = None,
+    trajectories: bool = True,
 ) -> ReplayResult:
     """Run VisionPipeline + TrafficMeasures over a video; results include the partial last period."""
     if pipeline_factory is None:
@@ -136,6 +138,7 @@ def replay_video(
     if hasattr(pipe, "warmup"):
         pipe.warmup()
     measures = TrafficMeasures(site)
+    measures.keep_trajectories = trajectories  # bounded per vehicle; for time-space diagrams
     res = ReplayResult(fps=frames.fps)
     writer = None
     if snapshots:
@@ -183,7 +186,7 @@ def replay_video(
     if res.frames == 0:
         raise ReplayError(f"{video}: contains no decodable frame")
     res.truncated = frames.truncation() if max_frames is None else None
-    res.periods += measures.flush(last.wall)
+    res.periods += measures.flush(last.wall + 1.0 / frames.fps)  # the last frame stands for one interval
     res.seconds = time.perf_counter() - t0
     return res
 
@@ -213,8 +216,7 @@ def write_results(res: ReplayResult, out: str, vehicles: bool) -> list[str]:
         dump(p.with_name(p.stem + "_crossings.csv"), [{c: r[c] for c in CROSSING_COLUMNS} for r in res.crossings])
         if vehicles:
             dump(p.with_name(p.stem + "_loop_events.csv"), [e.to_dict() for e in res.loop_events])
-            dump(p.with_name(p.stem + "_vehicles.csv"),
-                 [{k: v for k, v in r.to_dict().items() if k != "trajectory"} for r in res.vehicles])
+            dump(p.with_name(p.stem + "_vehicles.csv"), [r.to_dict() for r in res.vehicles])
         return written
     from appliance.store import Store
 
@@ -228,7 +230,7 @@ def write_results(res: ReplayResult, out: str, vehicles: bool) -> list[str]:
                        columns={c: (int if c in ("vehicle_id", "lane", "frame") else float) for c in CROSSING_COLUMNS})
         if vehicles:
             store.write_loop_events(res.loop_events)
-            store.write_vehicles(res.vehicles)
+            store.write_vehicles(res.vehicles, trajectories=True)
     finally:
         store.close()
     return [str(p)]
@@ -251,8 +253,20 @@ def format_table(periods: list[LaneAggregate]) -> str:
     return "\n".join(lines)
 
 
+def source_video(site: SiteConfig) -> str:
+    """The site's own file or image-sequence source (relative paths are relative to the site file)."""
+    url = site.source.url
+    if url.startswith(("synthetic:", "rtsp://", "http://", "https://", "/dev/")):
+        raise click.UsageError(f"the config's source ({url}) is not a file; give VIDEO")
+    rel = url.removeprefix("images:")
+    p = Path(rel)
+    if not p.is_absolute() and site.path:
+        p = Path(site.path).resolve().parent / p
+    return str(p)
+
+
 @click.command(name="replay")
-@click.argument("video")
+@click.argument("video", required=False)
 @click.option("--config", "config_path", required=True, type=click.Path(dir_okay=False), help="Site TOML.")
 @click.option("--fps", type=float, default=None, help="Frame rate (image sequences carry none; default: source.fps).")
 @click.option("--out", type=click.Path(dir_okay=False), default=None, help="results.sqlite or results.csv")
@@ -262,13 +276,18 @@ def format_table(periods: list[LaneAggregate]) -> str:
 @click.option("--start", default=None, help="Wall time of the first frame, ISO 8601 (default 2026-01-01T00:00:00Z).")
 @click.option("--max-frames", type=int, default=None, help="Stop after this many frames.")
 def replay(video, config_path, fps, out, vehicles, annotate, snapshots, start, max_frames) -> None:
-    """Run the pipeline on VIDEO (a file, or an image pattern like input/in%06d.jpg) as fast as it can."""
+    """Run the pipeline on VIDEO (a file, or an image pattern like input/in%06d.jpg) as fast as it can.
+
+    Without VIDEO the config's own file source is used (e.g. a site made by site-from-counts).
+    """
     if annotate and snapshots:
         raise click.UsageError("give --annotate or --snapshots, not both")
     try:
         site = load_site(config_path)
     except ConfigError as e:
         raise click.ClickException(f"config: {e}") from None
+    if video is None:
+        video = source_video(site)
     if fps is not None and fps <= 0:
         raise click.BadParameter("must be positive", param_hint="--fps")
     try:
@@ -314,12 +333,22 @@ def truth_vehicle_frames(vehicles_csv: str | Path, site: SiteConfig) -> list[tup
     return [frames[k] for k in sorted(frames)]
 
 
-def replay_truth_tracks(truth_dir: str | Path, site: SiteConfig, start_wall: float = DEFAULT_START_WALL) -> ReplayResult:
+def replay_truth_tracks(truth_dir: str | Path, site: SiteConfig, start_wall: float | None = None) -> ReplayResult:
     """TrafficMeasures fed with the simulator's exact trajectories (a perfect tracker)."""
+    d = Path(truth_dir)
+    meta = json.loads((d / "meta.json").read_text()) if (d / "meta.json").exists() else {}
+    if start_wall is None:
+        start_wall = float(meta.get("start_wall", DEFAULT_START_WALL))
+    by_frame = dict((round(t, 6), states) for t, states in truth_vehicle_frames(d / "vehicles.csv", site))
+    times = sorted(by_frame)
+    if (d / "frames.csv").exists():  # every frame, also those without a vehicle in view
+        with open(d / "frames.csv", newline="") as f:
+            times = sorted({round(float(r["t"]), 6) for r in csv.DictReader(f)} | set(times))
     measures = TrafficMeasures(site)
-    res = ReplayResult()
+    res = ReplayResult(fps=float(meta.get("fps", 0.0)))
     last_wall = start_wall
-    for seq, (t, states) in enumerate(truth_vehicle_frames(Path(truth_dir) / "vehicles.csv", site)):
+    for seq, t in enumerate(times):
+        states = by_frame.get(t, [])
         upd = measures.step(t, start_wall + t, states)
         res.periods += upd.periods
         res.loop_events += upd.loop_events
@@ -327,5 +356,6 @@ def replay_truth_tracks(truth_dir: str | Path, site: SiteConfig, start_wall: flo
         res.crossings += [dict(c.to_dict(), frame=seq) for c in upd.crossings]
         res.frames += 1
         last_wall = start_wall + t
-    res.periods += measures.flush(last_wall)
+    end = start_wall + float(meta["seconds"]) if "seconds" in meta else last_wall
+    res.periods += measures.flush(max(end, last_wall))
     return res

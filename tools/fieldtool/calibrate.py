@@ -42,7 +42,7 @@ def _read_image(path: str) -> np.ndarray:
     return img
 
 
-def _zones_px(raw: dict, path: str, H) -> list[np.ndarray]:
+def _zones_px(raw: dict, H) -> list[np.ndarray]:
     """Lane polygons of the config in pixels under the new homography (for the horizon check)."""
     zones = []
     for lane in raw.get("lanes", []):
@@ -124,7 +124,7 @@ def calibrate(config_path, points_file, points, lane_lines, lane_width, first_li
         h, w = _read_image(snapshot).shape[:2]
         size = (w, h)
     limit = float(raw.get("calibration", {}).get("max_error_m", 0.5))
-    result = check(H, corr, size, _zones_px(raw, config_path, H), max_point_error_m=limit)
+    result = check(H, corr, size, _zones_px(raw, H), max_point_error_m=limit)
 
     if as_json:
         click.echo(json.dumps(result.to_dict(), indent=2))
@@ -141,6 +141,8 @@ def calibrate(config_path, points_file, points, lane_lines, lane_width, first_li
             click.echo(f"horizon at image row {hr:.0f} (centre column)")
         mpp = H.metres_per_pixel([[size[0] / 2, size[1] - 1]])[0]
         click.echo(f"scale at the image bottom: {100 * mpp[0]:.1f} cm/px across, {100 * mpp[1]:.1f} cm/px along")
+        for n in result.notes:
+            click.echo(f"note: {n}")
         for w in result.warnings:
             click.echo(f"WARNING: {w}", err=True)
         if not result.warnings:
@@ -178,6 +180,5 @@ def calibrate(config_path, points_file, points, lane_lines, lane_width, first_li
         cal["road_m"] = [[round(float(a), 4) for a in p] for p in result.road_m]
         data["calibration"] = cal
         res = install_config(config_path, data, url, reload, draft_ok=True)
-        if not as_json:
-            for line in res.lines(config_path):
-                click.echo(line)
+        for line in res.lines(config_path):
+            click.echo(line, err=as_json)

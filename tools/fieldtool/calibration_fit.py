@@ -39,6 +39,7 @@ class CalibrationResult:
     warnings: list[str]
     image_px: list[list[float]]  # what to write into calibration.image_px
     road_m: list[list[float]]  # and calibration.road_m
+    notes: list[str] = field(default_factory=list)  # worth knowing, not a reason to refuse
 
     def to_dict(self) -> dict:
         return {
@@ -48,6 +49,7 @@ class CalibrationResult:
             "mean_error_m": round(float(self.all_errors().mean()), 4) if self.all_errors().size else None,
             "max_error_m": round(float(self.all_errors().max()), 4) if self.all_errors().size else None,
             "warnings": self.warnings,
+            "notes": self.notes,
             "image_px": self.image_px,
             "road_m": self.road_m,
         }
@@ -154,6 +156,17 @@ def check(
         )
     elif J[1, 1] > 0:
         warnings.append("road Y grows towards the camera (down the image); Y must grow away from the camera")
+    p_top, p_bottom = all_img[np.argmin(all_img[:, 1])], all_img[np.argmax(all_img[:, 1])]
+    if p_bottom[1] - p_top[1] > 1.0:
+        scale = H.metres_per_pixel(np.array([p_top, p_bottom]))[:, 1]
+        if scale[0] < scale[1]:
+            warnings.append(
+                "inverted perspective: the scale shrinks towards the top of the image, so lines parallel on "
+                "the road diverge; a point is probably wrong"
+            )
+    notes = []
+    if not corr.lines and len(img) == 4:
+        notes.append("exactly 4 points fit exactly (errors are 0 by construction); add points to check for typos")
     if image_size is not None:
         w, h = image_size
         bbox = np.ptp(all_img, axis=0)
@@ -171,7 +184,7 @@ def check(
             if zones and all(r is not None for r in horizon):
                 top = min(float(np.asarray(z, float)[:, 1].min()) for z in zones)
                 hmax = max(horizon)
-                if sign_ref > 0 and top - hmax < 0.05 * h:
+                if sign_ref > 0 and 0 <= top - hmax < 0.05 * h:
                     warnings.append(
                         f"a lane or zone reaches row {top:.0f}, within {top - hmax:.0f} px of the horizon (row {hmax:.0f}): "
                         "distances there are very uncertain"
@@ -189,7 +202,7 @@ def check(
         r[:, 0] = ln.x_m
         out_img += pts.tolist()
         out_road += r.tolist()
-    return CalibrationResult(H, perr, lerr, warnings, out_img, out_road)
+    return CalibrationResult(H, perr, lerr, warnings, out_img, out_road, notes)
 
 
 def parse_point(text: str) -> tuple[list[float], list[float]]:

@@ -13,22 +13,25 @@ import click
 from tools.fieldtool.common import When, config_option, iso, write_file
 from tools.fieldtool.storeaccess import open_readonly, store_path
 
-TIME_COLUMNS = {"periods": "period_start", "loop-events": "wall_on", "vehicles": "wall_exit"}
+TIME_COLUMNS = {"periods": "period_start", "loop-events": "wall_on", "vehicles": "wall_exit", "health": "wall"}
 
 
 def fetch(store, what: str, t0: float, t1: float, lane: int | None, trajectories: bool = False) -> list[dict]:
-    """Rows of one table for [t0, t1), optionally one lane, with ISO 8601 copies of the times."""
+    """Rows of one table for [t0, t1), optionally one lane, with ISO 8601 copies of the times
+    (``<column>_utc``)."""
     if what == "periods":
         rows = store.periods(t0, t1, lane)
     elif what == "loop-events":
         rows = [r for r in store.loop_events(t0, t1) if lane is None or r["lane"] == lane]
+    elif what == "health":
+        rows = store.health_events(t0, t1)
     else:
         rows = store.vehicles(t0, t1, lane)
         if not trajectories:
             for r in rows:
                 r.pop("trajectory", None)
     for r in rows:
-        for k in ("period_start", "wall_on", "wall_off", "wall_entry", "wall_exit"):
+        for k in ("period_start", "wall_on", "wall_off", "wall_entry", "wall_exit", "wall"):
             if k in r and r[k] is not None:
                 r[f"{k}_utc"] = iso(r[k])
     return rows
@@ -57,9 +60,10 @@ def to_csv(rows: list[dict]) -> str:
 @click.option("--db", type=click.Path(dir_okay=False), default=None, help="Store file (default: the config's store.path).")
 @config_option
 def export(t_from, t_to, lane, what, fmt, trajectories, out, db, config_path) -> None:
-    """Export 5-minute periods, loop events or vehicles from the store (opened read-only).
+    """Export 5-minute periods, loop events, vehicles or health events from the store (read-only).
 
-    Times select period_start (periods), wall_on (loop events) or wall_exit (vehicles).
+    Times select period_start (periods), wall_on (loop events), wall_exit (vehicles) or the
+    event time (health; --lane does not apply).
 
     \b
     Examples:

@@ -20,6 +20,14 @@ def _utc(ts) -> list[datetime]:
     return [datetime.fromtimestamp(float(t), timezone.utc) for t in ts]
 
 
+def _extent(periods: list[dict]) -> tuple[float, float]:
+    """Wall-clock span covered by the periods (at least 15 minutes, so one period is readable)."""
+    t0 = min(p["period_start"] for p in periods)
+    t1 = max(p["period_start"] + p["period_s"] for p in periods)
+    pad = max(0.0, 900.0 - (t1 - t0)) / 2
+    return t0 - pad, t1 + pad
+
+
 def _save(fig, path: Path) -> None:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=100)
@@ -55,8 +63,9 @@ def plot_periods(periods: list[dict], title: str, path: Path) -> None:
     axes[2].set_xlabel("time (UTC); hollow markers: partial periods")
     for ax in axes:
         ax.grid(alpha=0.3)
-        ax.set_ylim(bottom=0)
+        ax.set_ylim(0, max(ax.get_ylim()[1], 1.0) * 1.08)
     axes[0].legend(loc="upper right", ncols=max(1, len(lanes)))
+    axes[2].set_xlim(*_utc(_extent(periods)))
     axes[2].xaxis.set_major_formatter(mdates.DateFormatter("%m-%d %H:%M", tz=timezone.utc))
     fig.suptitle(title)
     fig.autofmt_xdate()
@@ -91,6 +100,7 @@ def plot_counts(periods: list[dict], title: str, path: Path) -> None:
         ax.set_ylabel(f"lane {lane}\nvehicles / period")
         ax.grid(alpha=0.3, axis="y")
     axes[0, 0].legend(loc="upper right", ncols=max(1, len(classes) + 1), fontsize=8)
+    axes[-1, 0].set_xlim(*_utc(_extent(periods)))
     axes[-1, 0].xaxis.set_major_formatter(mdates.DateFormatter("%m-%d %H:%M", tz=timezone.utc))
     axes[-1, 0].set_xlabel("period start (UTC)")
     fig.suptitle(title)
@@ -163,12 +173,14 @@ def plot_time_space(vehicles: list[dict], title: str, path: Path, t_start: float
             ax.plot(wall - t0, y, "-", color="k", lw=0.8)
             n += 1
         for label, y0, y1 in (marks or {}).get(lane, []):
-            if y1 > y0:
+            if y1 > y0:  # a loop: band, labelled right of the panel
                 ax.axhspan(y0, y1, color="tab:red", alpha=0.25, lw=0)
-            else:
+                ax.annotate(label, (1.0, y1), xycoords=("axes fraction", "data"), xytext=(3, 0),
+                            textcoords="offset points", fontsize=7, va="center")
+            else:  # the count line: dashed, labelled inside on the left
                 ax.axhline(y0, color="tab:orange", ls="--", lw=1)
-            ax.annotate(label, (1.0, y1), xycoords=("axes fraction", "data"), xytext=(3, 0),
-                        textcoords="offset points", fontsize=7, va="center")
+                ax.annotate(label, (0.0, y0), xycoords=("axes fraction", "data"), xytext=(3, 2),
+                            textcoords="offset points", fontsize=7, va="bottom", color="tab:orange")
         ax.set_ylabel(f"lane {lane}\ndistance Y (m)")
         ax.grid(alpha=0.3)
         if seconds is not None:

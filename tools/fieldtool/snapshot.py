@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import logging
 import threading
 from pathlib import Path
 
@@ -71,16 +72,29 @@ def grab_frame(cfg: SiteConfig, skip: int = 0) -> np.ndarray:
         except Exception as e:  # any driver failure is a failed grab for the installer
             result["error"] = e
 
+    # the driver logs each reconnect attempt; keep the last message for the error instead
+    messages: list[str] = []
+    handler = logging.Handler()
+    handler.emit = lambda record: messages.append(record.getMessage())  # type: ignore[method-assign]
+    driver_log = logging.getLogger("roadwatch.source")
+    old_propagate = driver_log.propagate
+    driver_log.addHandler(handler)
+    driver_log.propagate = False
     th = threading.Thread(target=run, daemon=True)
-    th.start()
-    th.join(cfg.source.open_timeout_s + cfg.source.read_timeout_s + 0.05 * skip)
     try:
-        src.close()
-    except Exception:
-        pass
+        th.start()
+        th.join(cfg.source.open_timeout_s + cfg.source.read_timeout_s + 0.05 * skip)
+        try:
+            src.close()
+        except Exception:
+            pass
+    finally:
+        driver_log.removeHandler(handler)
+        driver_log.propagate = old_propagate
     if th.is_alive():
+        last = f" (last: {messages[-1]})" if messages else ""
         raise SnapshotError(f"source {cfg.source.url!r}: no frame within "
-                            f"{cfg.source.open_timeout_s + cfg.source.read_timeout_s:.0f} s")
+                            f"{cfg.source.open_timeout_s + cfg.source.read_timeout_s:.0f} s{last}")
     if "error" in result:
         raise SnapshotError(f"source {cfg.source.url!r}: {result['error']}")
     if result.get("frame") is None:

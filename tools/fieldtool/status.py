@@ -15,8 +15,9 @@ def _fmt(v, spec: str = ".1f", none: str = "-") -> str:
     return none if v is None else format(v, spec)
 
 
-def format_status(st: dict) -> str:
-    """The status JSON as a terminal table."""
+def format_status(st: dict, baseline: dict | None = None) -> str:
+    """The status JSON as a terminal table; with ``baseline`` (an earlier status), the counts
+    since then per channel and lane (for checking against a manual count)."""
     faults = st.get("faults") or []
     lines = [
         f"site {st.get('site', '?')}  version {st.get('version', '?')}  pid {st.get('pid', '?')}  "
@@ -25,19 +26,26 @@ def format_status(st: dict) -> str:
         f"tracked vehicles {st.get('tracked_vehicles', '-')}  period seq {st.get('period_seq', '-')}",
         "health: " + ("OK" if not faults else "FAULT " + ", ".join(map(str, faults))),
         "",
-        f"{'ch':>3} {'loop':<8} {'lane':>4} {'call':<6} {'count':>7} {'occ %':>6} {'km/h':>6} {'len m':>6}  classes",
+        f"{'ch':>3} {'loop':<8} {'lane':>4} {'call':<6} {'count':>7} {'occ %':>6} {'km/h':>6} {'len m':>6}  "
+        + ("since  " if baseline else "") + "classes",
     ]
+    base_ch = {c.get("channel"): c.get("count", 0) for c in (baseline or {}).get("channels", [])}
     for ch in st.get("channels", []):
         call = ("FORCED" if ch.get("forced") else "ON") if ch.get("call") else "."
         classes = " ".join(f"{k}:{v}" for k, v in sorted((ch.get("class_counts") or {}).items()))
         lines.append(
             f"{ch.get('channel', '?'):>3} {str(ch.get('loop_id', '')):<8} {ch.get('lane', ''):>4} {call:<6} "
             f"{ch.get('count', 0):>7} {_fmt(ch.get('occupancy_pct')):>6} {_fmt(ch.get('last_speed_kmh')):>6} "
-            f"{_fmt(ch.get('last_length_m')):>6}  {classes}"
+            f"{_fmt(ch.get('last_length_m')):>6}  "
+            + (f"{ch.get('count', 0) - base_ch.get(ch.get('channel'), ch.get('count', 0)):>+5}  " if baseline else "")
+            + classes
         )
     lanes = st.get("lanes") or {}
     if lanes:
         lines += ["", "live count per lane: " + "  ".join(f"lane {k}: {v}" for k, v in lanes.items())]
+        if baseline:
+            b = baseline.get("lanes") or {}
+            lines.append("since start:         " + "  ".join(f"lane {k}: {v - b.get(k, v):+d}" for k, v in lanes.items()))
     last = st.get("last_period") or []
     if last:
         start = last[0].get("period_start")
@@ -69,7 +77,10 @@ def _duration(s) -> str:
 @click.option("--json", "as_json", is_flag=True, help="Print the raw status JSON once (for scripts).")
 @click.option("--interval", type=click.FloatRange(min=0.2), default=1.0, show_default=True, help="Refresh period, s.")
 @click.option("--count", "n", type=click.IntRange(min=1), default=None, help="Stop after this many refreshes.")
-def status(config_path: str, url: str | None, once: bool, as_json: bool, interval: float, n: int | None) -> None:
+@click.option("--since-start", is_flag=True,
+              help="Also show counts since this command started (to compare with a manual count).")
+def status(config_path: str, url: str | None, once: bool, as_json: bool, interval: float, n: int | None,
+           since_start: bool) -> None:
     """Show health, faults, fps, dropped frames, live counts and calls of the running service.
 
     Exit status 1 if the service does not answer, 2 if it reports a fault (with --once/--json).
@@ -79,6 +90,7 @@ def status(config_path: str, url: str | None, once: bool, as_json: bool, interva
       roadwatch status                 # refreshing table, Ctrl-C to stop
       roadwatch status --once
       roadwatch status --json | jq .channels
+      roadwatch status --since-start   # count by hand alongside, compare the "since" column
     """
     client = StatusClient(service_url(url, config_path))
     if as_json or once:
@@ -91,10 +103,17 @@ def status(config_path: str, url: str | None, once: bool, as_json: bool, interva
             raise SystemExit(2)
         return
     shown = 0
+    baseline = None
+    started = time.strftime("%H:%M:%S")
     try:
         while n is None or shown < n:
             try:
-                text = format_status(client.status())
+                st = client.status()
+                if since_start and baseline is None:
+                    baseline = st
+                text = format_status(st, baseline)
+                if baseline is not None:
+                    text += f"\n(since {started})"
             except (ServiceError, ServiceUnreachable) as e:
                 text = f"{time.strftime('%H:%M:%S')}  {e} (retrying)"
             click.clear()

@@ -50,6 +50,10 @@ def zone_warnings(cfg: SiteConfig) -> list[str]:
             d, e = lane.detection_y_m, lane.exit_y_m
             if d[0] < e[1] and e[0] < d[1]:
                 out.append(f"lane {lane.id}: detection zone {d} and exit zone {e} overlap")
+            elif (d[0] < e[0]) == (lane.direction == "approaching"):
+                where = "far (larger Y)" if lane.direction == "approaching" else "near (smaller Y)"
+                out.append(f"lane {lane.id} is {lane.direction}: vehicles enter at the {where} end, "
+                           f"but the detection zone {d} is past the exit zone {e}")
     return out
 
 
@@ -175,7 +179,7 @@ def lane_cmd(lane_id, direction, polygon_px, polygon_m, detection_y, exit_y, det
 
     \b
     Example:
-      roadwatch zones lane 2 --polygon-m "0,-3 3.66,-3 3.66,60 0,60" --detection-y -3 5 --exit-y 40 60
+      roadwatch zones lane 2 --polygon-m "0,-3 3.66,-3 3.66,60 0,60" --detection-y 40 60 --exit-y -3 5
     """
     if polygon_px and polygon_m:
         raise click.UsageError("give --polygon-px or --polygon-m, not both")
@@ -297,16 +301,34 @@ def remove_cmd(kind, ident, config_path, url, reload, snapshot, render_png, out_
 @config_option
 @click.option("--snapshot", type=click.Path(exists=True, dir_okay=False),
               help="Snapshot PNG to draw on (default: a frame from the source).")
+@click.option("--from-service", is_flag=True, help="Draw on the running service's latest frame.")
+@url_option
 @click.option("--out", "-o", type=click.Path(dir_okay=False), default="zones.png", show_default=True)
-def render_cmd(config_path, snapshot, out) -> None:
+def render_cmd(config_path, snapshot, from_service, url, out) -> None:
     """Draw lanes, zones, loops (with channels) and fiducials over the snapshot.
 
     \b
-    Example:
+    Examples:
       roadwatch zones render --snapshot snap.png -o zones.png
+      roadwatch zones render --from-service -o live-zones.png
     """
     cfg = load_config(config_path)
-    render(cfg, snapshot, out)
+    if from_service:
+        import cv2
+
+        from tools.fieldtool.common import service_url
+        from tools.fieldtool.statusclient import ServiceError, ServiceUnreachable, StatusClient
+
+        try:
+            png = StatusClient(service_url(url, config_path)).snapshot_png(overlay=False)
+        except (ServiceError, ServiceUnreachable) as e:
+            raise click.ClickException(f"no frame from the service: {e}") from None
+        img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+        if img is None or img.shape[:2] != (cfg.source.height, cfg.source.width):
+            raise click.ClickException("the service's frame does not match the config's source size")
+        write_png(out, draw_site(img, cfg))
+    else:
+        render(cfg, snapshot, out)
     click.echo(f"wrote {out}")
 
 

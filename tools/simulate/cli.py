@@ -44,9 +44,11 @@ def _preset_help() -> str:
 @click.option("--drop-frames", type=click.FloatRange(0, 0.5), default=None, help="Probability of dropping a frame.")
 @click.option("--jitter-ms", type=click.FloatRange(min=0), default=None, help="Capture timestamp jitter (ms, s.d.).")
 @click.option("--crf", type=click.IntRange(0, 51), default=None, help="H.264 quality (higher = more compression).")
+@click.option("--png-every", type=click.FloatRange(min=0), default=0.0, metavar="SECONDS",
+              help="Also save a PNG frame every SECONDS to OUT/frames/ (0 = none).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
 def simulate(preset, seed, seconds, out, width, height, fps, lanes, receding_lanes, demand, demand_profile, cam_height,
-             tilt, pan, repeat_frames, drop_frames, jitter_ms, crf, quiet) -> None:
+             tilt, pan, repeat_frames, drop_frames, jitter_ms, crf, png_every, quiet) -> None:
     from tools.simulate.scenario import render_scenario
 
     profile = None
@@ -65,7 +67,7 @@ def simulate(preset, seed, seconds, out, width, height, fps, lanes, receding_lan
     t0 = time.perf_counter()
     try:
         res = render_scenario(preset, seed, seconds, out, width=width, height=height, fps=fps,
-                              progress=not quiet, **overrides)
+                              progress=not quiet, png_every_s=png_every, **overrides)
     except ValueError as e:
         raise click.BadParameter(str(e)) from None
     dt = time.perf_counter() - t0

@@ -21,10 +21,10 @@ class Conditions:
 
     def __init__(self, p: SceneParams, width: int, height: int, rng: np.random.Generator):
         self.p, self.w, self.h, self.rng = p, width, height, rng
-        self.noise = []
-        for _ in range(6):
-            n = rng.normal(0.0, p.noise_sigma, (height, width)).astype(np.float32)
-            self.noise.append((np.clip(n, 0, 255).astype(np.uint8), np.clip(-n, 0, 255).astype(np.uint8)))
+        # a tall bank of sensor noise; each frame takes a random window of it (no per-frame allocation)
+        n = (p.noise_sigma * rng.standard_normal((3 * height, width), dtype=np.float32))
+        self.noise_pos = np.clip(n, 0, 255).astype(np.uint8)
+        self.noise_neg = np.clip(-n, 0, 255).astype(np.uint8)
         self.rain = []
         if p.rain:
             for _ in range(5):
@@ -39,14 +39,17 @@ class Conditions:
         self.drift_dir = rng.uniform(0, 2 * math.pi)
         self.shake_state = np.zeros(2)
         self.frame = 0
+        self.night_factor = 1.0 if p.night else 0.0  # set per frame by a day-to-night scene
+
+    def drift(self, t: float) -> tuple[float, float]:
+        """Slow camera drift at time t (px), e.g. a pole bending in the sun or a loose mount."""
+        d = self.p.drift_px_per_min * t / 60.0
+        return d * math.cos(self.drift_dir), d * math.sin(self.drift_dir)
 
     def offset(self, t: float) -> tuple[float, float]:
-        """Camera image motion at time t (px): slow drift plus smoothed wind jitter."""
+        """Camera image motion at time t (px): slow drift plus smoothed wind jitter (advances the jitter)."""
         p = self.p
-        dx = dy = 0.0
-        if p.drift_px_per_min > 0:
-            d = p.drift_px_per_min * t / 60.0
-            dx, dy = d * math.cos(self.drift_dir), d * math.sin(self.drift_dir)
+        dx, dy = self.drift(t)
         if p.shake_px > 0:
             self.shake_state = 0.6 * self.shake_state + 0.8 * self.rng.normal(0.0, p.shake_px, 2)
             dx += float(self.shake_state[0])
@@ -77,21 +80,22 @@ class Conditions:
             img = cv2.warpAffine(img, M, (self.w, self.h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         if p.defocus > 0:
             img = cv2.GaussianBlur(img, (0, 0), p.defocus)
-        if p.motion_blur and (p.night or p.dusk):
+        if p.motion_blur and (p.night or p.dusk or self.night_factor > 0.5):
             img = cv2.blur(img, (1, 3))  # long exposure: vehicles smear along their (mostly vertical) image motion
         elif p.motion_blur and p.shake_px > 0:
             img = cv2.blur(img, (2, 2))
         if p.auto_gain:
             m = float(cv2.mean(img[self.h // 3 :: 4, ::4])[0])
             self.gain_ema = m if self.gain_ema is None else 0.97 * self.gain_ema + 0.03 * m
-            target = 50.0 if p.night else 55.0 if p.dusk else 105.0
-            g = float(np.clip(target / max(self.gain_ema, 1.0), 0.85, 1.6 if p.night else 1.3 if p.dusk else 1.2))
+            f = self.night_factor
+            target = 55.0 if p.dusk else 105.0 * (1.0 - f) + 50.0 * f
+            top = 1.3 if p.dusk else 1.2 + 0.4 * f
+            g = float(np.clip(target / max(self.gain_ema, 1.0), 0.85, top))
             if abs(g - 1.0) > 0.01:
                 img = cv2.convertScaleAbs(img, alpha=g, beta=0)
         if p.noise_sigma > 0:
-            pos, neg = self.noise[self.frame % len(self.noise)]
-            k = int(self.rng.integers(0, self.w))
-            img = cv2.subtract(cv2.add(img, np.roll(pos, k, axis=1)), np.roll(neg, k // 2, axis=1))
+            a, b = (int(v) for v in self.rng.integers(0, 2 * self.h, 2))
+            img = cv2.subtract(cv2.add(img, self.noise_pos[a : a + self.h]), self.noise_neg[b : b + self.h])
         if p.jpeg_quality > 0:
             ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, int(p.jpeg_quality)])
             img = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)

@@ -40,6 +40,7 @@ class SceneParams:
     dusk: bool = False
     night: bool = False
     rain: bool = False
+    day_to_night: list[float] | None = None  # [t_start, t_end] s: light fades from day to night in between
     shake_px: float = 0.0  # wind-shake standard deviation
     drift_px_per_min: float = 0.0
     motion_blur: bool = True
@@ -67,6 +68,7 @@ PRESETS: dict[str, str] = {
     "trucks-and-buses": "Heavy-vehicle mix (trucks, articulated trucks, buses) that occlude the lanes behind.",
     "two-directions": "2 approaching + 2 receding lanes, camera on a pole at the roadside.",
     "dusk": "Low light after sunset, headlights on, gain riding high.",
+    "day-to-night": "3 lanes from sunny day to lamp-lit night over the first 4 minutes: gain, shadows, headlights.",
     "defects": "free-flow footage at 15 fps padded to 30 fps, dropped frames and timestamp jitter.",
 }
 
@@ -95,6 +97,7 @@ _OVERRIDES: dict[str, dict] = {
     ),
     "two-directions": dict(lanes_approaching=2, lanes_receding=2, demand_vph=800.0, cam_offset_m=3.0),
     "dusk": dict(dusk=True, shadows=False, noise_sigma=4.5, lanes_receding=1),
+    "day-to-night": dict(lanes_approaching=2, lanes_receding=1, day_to_night=[20.0, 240.0], noise_sigma=4.0),
     "defects": dict(repeat_frames=2, drop_prob=0.01, jitter_ms=4.0),
 }
 

@@ -79,8 +79,12 @@ def capture_times(seconds: float, content_fps: float, jitter_ms: float, rng: np.
 
 
 def render_scenario(preset: str, seed: int, seconds: float, out_dir: Path, *, width: int = 640, height: int = 480,
-                    fps: float = 25.0, progress: bool = False, **overrides) -> "ScenarioOutput":
-    """Render `seconds` of a preset scene with its exact truth into out_dir (created if missing)."""
+                    fps: float = 25.0, progress: bool = False, png_every_s: float = 0.0,
+                    **overrides) -> "ScenarioOutput":
+    """Render `seconds` of a preset scene with its exact truth into out_dir (created if missing).
+
+    png_every_s > 0 also saves out_dir/frames/frame_NNNNNN.png every that many seconds (for looking at).
+    """
     if seconds <= 0:
         raise ValueError(f"seconds must be positive, got {seconds}")
     out_dir = Path(out_dir)
@@ -109,6 +113,7 @@ def render_scenario(preset: str, seed: int, seconds: float, out_dir: Path, *, wi
     vf = open(truth_dir / "vehicles.csv", "w", newline="")
     vf.write(",".join(VEHICLE_FIELDS) + "\n")
     t_prev = 0.0
+    next_png = 0.0
     drop_pending = False
     try:
         for i, t in enumerate(times):
@@ -122,6 +127,10 @@ def render_scenario(preset: str, seed: int, seconds: float, out_dir: Path, *, wi
                 continue
             img, rows = scene.render()
             frame = writer.n
+            if png_every_s > 0 and t >= next_png:
+                (out_dir / "frames").mkdir(exist_ok=True)
+                cv2.imwrite(str(out_dir / "frames" / f"frame_{frame:06d}.png"), img)
+                next_png += png_every_s
             for r in range(p.repeat_frames):
                 frames_rows.append(dict(frame=writer.n, t=round(float(t), 6), repeated=r > 0,
                                         dropped_before=drop_pending and r == 0))

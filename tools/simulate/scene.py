@@ -7,7 +7,7 @@ import math
 import cv2
 import numpy as np
 
-from tools.simulate.background import draw_quads, render_background, shadow_points
+from tools.simulate.background import render_background, shadow_points
 from tools.simulate.camera import Camera
 from tools.simulate.conditions import Conditions
 from tools.simulate.presets import SceneParams, scene_params
@@ -18,14 +18,17 @@ from tools.simulate.vehicles import build_shape
 
 LOOP_LENGTH_M = 1.8
 WARM_UP_S = 90.0
+FAR_DETAIL_M = 110.0
+NIGHT_EXPOSURE = 0.28
 
 
 class Scene:
     """Build with a preset name and seed; then alternate `step(dt)` and `render()`."""
 
     def __init__(self, preset: str, seed: int, *, width: int = 640, height: int = 480, fps: float = 25.0,
-                 period_s: float = 300.0, **overrides):
+                 period_s: float = 300.0, truth: bool = True, **overrides):
         self.preset, self.seed, self.fps = preset, int(seed), float(fps)
+        self.keep_truth = truth
         if width < 64 or height < 48:
             raise ValueError(f"image size {width}x{height} is too small (at least 64x48)")
         if not 0 < fps <= 240:
@@ -41,7 +44,7 @@ class Scene:
         el, az = math.radians(p.sun_elevation_deg), math.radians(p.sun_azimuth_deg)
         self.sun = np.array([math.cos(el) * math.sin(az), math.cos(el) * math.cos(az), math.sin(el)])
         self.ambient = 0.85 if (p.overcast or p.night or p.dusk) else 0.5
-        self.exposure = 0.28 if p.night else 0.4 if p.dusk else 0.8 if p.overcast else 1.0
+        self.exposure = NIGHT_EXPOSURE if p.night else 0.4 if p.dusk else 0.8 if p.overcast else 1.0
         self.shadows = p.shadows and not (p.overcast or p.night or p.dusk)
         light = self.sun * (0.35 if p.overcast else 1.0)
         lamp_ys = [28.0, 68.0, 108.0, 148.0]
@@ -50,6 +53,7 @@ class Scene:
             self.cam, self.layout, rng_bg, sun=self.sun, ambient=self.ambient, shadows=self.shadows, night=p.night,
             exposure=self.exposure, wet=p.rain, stop_line_y=stop_y, lamp_ys=lamp_ys)
         self.objects.sort(key=lambda o: o.depth, reverse=True)  # painter's order among static objects
+        self.veh_scale = 1.0
         for o in self.objects:  # baked in; pasted again only over vehicles farther away than the object
             self._paste(self.bg, o)
             self._paste(self.bg_shadow, o)
@@ -57,8 +61,19 @@ class Scene:
                                  dtype=np.float64).reshape(-1, 4)
         self._obj_depth = np.array([o.depth for o in self.objects])
         self.night_lights = p.night or p.dusk
+        self.bg_night = None
+        self.veh_scale, self.lamps_dynamic = 1.0, False
+        if p.day_to_night:  # a second, night version of the same background to fade into
+            if len(p.day_to_night) != 2 or not 0 <= p.day_to_night[0] < p.day_to_night[1]:
+                raise ValueError(f"day_to_night must be [t_start, t_end] with 0 <= t_start < t_end, got {p.day_to_night}")
+            self.bg_night, _, _ = render_background(
+                self.cam, self.layout, np.random.default_rng(streams[1]), sun=self.sun, ambient=0.85, shadows=False,
+                night=True, exposure=NIGHT_EXPOSURE, wet=p.rain, stop_line_y=stop_y, lamp_ys=lamp_ys)
+            self.bg_day, self.bg_shadow_day = self.bg, self.bg_shadow
+            self.lamps_dynamic = True
+        build_night, build_exp = (False, 1.0) if p.day_to_night else (self.night_lights, self.exposure)
         self.traffic = Traffic(p, self.layout, self.rng_traffic, lambda c, d: build_shape(
-            c, self.rng_shape, d, light, self.ambient, self.night_lights, self.exposure))
+            c, self.rng_shape, d, light, self.ambient, build_night, build_exp))
         self.conditions = Conditions(p, width, height, rng_cond)
         self.geometry = self._site_geometry()
         self.truth = TruthAccumulator(
@@ -154,6 +169,8 @@ class Scene:
         tr = self.traffic
         t0 = tr.t
         tr.step(dt)
+        if not self.keep_truth:
+            return
         if len(tr.s):
             d = tr.dirs[tr.lane]
             y0 = tr.y_start[tr.lane]
@@ -167,6 +184,8 @@ class Scene:
     def render(self, want_truth: bool = True) -> tuple[np.ndarray, list[dict]]:
         """Draw the current state: (grey image, per-vehicle truth rows without frame/t)."""
         cam, tr = self.cam, self.traffic
+        if self.bg_night is not None:
+            self._set_daylight(tr.t)
         img = self.bg.copy()
         n = len(tr.s)
         rows: list[dict] = []
@@ -190,13 +209,21 @@ class Scene:
             qpx, qdep = cam.project(allq)
             facing = np.einsum("ij,ij->i", alln, allq.mean(axis=1) - cam.centre) < 0
             facing &= (qdep > 0.5).all(axis=1)
+            # level of detail: far vehicles (a few pixels) are drawn without their face details
+            far = np.hypot(tr.x[idx] - cam.x_m, yc[idx]) > FAR_DETAIL_M
+            if far.any():
+                decal = np.concatenate([sh.decal for sh in shapes])
+                facing &= ~(decal & np.repeat(far, nq))
             qpts = np.round(qpx * 16).astype(np.int32)
             cpx, cdep = cam.project(corners)
         q_end, c_end = np.cumsum(nq), np.cumsum(npt)
         if self.shadows and len(idx):
             self._mask.fill(0)
-            spx = np.round(cam.road_to_image(shadow_points(corners, self.sun)) * 16).astype(np.int32)
-            for k in range(len(idx)):
+            sp = shadow_points(corners, self.sun)
+            _, sdep = cam.project(np.column_stack([sp, np.zeros(len(sp))]))
+            sok = np.minimum.reduceat(sdep, c_end - npt) > 0.5  # shadow wholly in front of the camera
+            spx = np.round(cam.road_to_image(sp) * 16).astype(np.int32)
+            for k in np.nonzero(sok)[0]:
                 hull = cv2.convexHull(spx[c_end[k] - npt[k] : c_end[k]])
                 cv2.fillConvexPoly(self._mask, hull, 255, cv2.LINE_8, 4)
             cv2.copyTo(self.bg_shadow, self._mask, img)
@@ -217,6 +244,11 @@ class Scene:
             vis = vis_arr.tolist()
             vis_lo = np.searchsorted(vis_arr, q_end - nq).tolist()
             vis_hi = np.searchsorted(vis_arr, q_end).tolist()
+            if self.lamps_dynamic:
+                allv = allv * self.veh_scale
+                if self.night_lights:
+                    lamp = np.concatenate([sh.lamp for sh in shapes])
+                    allv = np.where(lamp > 0, lamp, allv)
             vals = allv.tolist()
         depth = np.hypot(tr.x[idx] - cam.x_m, yc[idx])
         objs = []
@@ -281,6 +313,19 @@ class Scene:
                 ))
         return out, rows
 
+    def _set_daylight(self, t: float) -> None:
+        """Fade from day to night: background, shadows, vehicle shading, lights and the camera's gain target."""
+        t0, t1 = self.p.day_to_night
+        f = float(np.clip((t - t0) / (t1 - t0), 0.0, 1.0))
+        self.night_factor = f
+        self.bg = cv2.addWeighted(self.bg_day, 1.0 - f, self.bg_night, f, 0.0)
+        self.shadows = self.p.shadows and f < 0.6
+        if self.shadows:
+            self.bg_shadow = cv2.addWeighted(self.bg_shadow_day, 1.0 - f, self.bg_night, f, 0.0)
+        self.veh_scale = (1.0 - f) + f * NIGHT_EXPOSURE
+        self.night_lights = f > 0.4
+        self.conditions.night_factor = f
+
     def _reflections(self, img: np.ndarray, quads: np.ndarray, normals: np.ndarray, values: np.ndarray) -> None:
         """Crude wet-road mirror images: the vehicles reflected in the road plane, faint and dark."""
         mq = quads.copy()
@@ -296,7 +341,8 @@ class Scene:
 
     def _paste(self, img: np.ndarray, o) -> None:
         roi = img[o.y0 : o.y0 + o.patch.shape[0], o.x0 : o.x0 + o.patch.shape[1]]
-        cv2.copyTo(o.patch, o.mask, roi)
+        patch = o.patch if self.veh_scale == 1.0 else cv2.convertScaleAbs(o.patch, alpha=self.veh_scale)
+        cv2.copyTo(patch, o.mask, roi)
 
     def _lights(self, img: np.ndarray, idx: np.ndarray, offs: np.ndarray, d: np.ndarray) -> None:
         tr, cam = self.traffic, self.cam

@@ -17,7 +17,7 @@ class SceneStream:
     def __init__(self, preset: str, seed: int, *, width: int = 640, height: int = 480, fps: float = 25.0,
                  site_path: Path | None = None):
         self.preset, self.seed, self.fps = preset, int(seed), float(fps)
-        self.scene = Scene(preset, seed, width=width, height=height, fps=fps)
+        self.scene = Scene(preset, seed, width=width, height=height, fps=fps, truth=False)
         self.n = 0
         if site_path is not None:
             Path(site_path).write_text(site_toml(self.site_dict()))
@@ -27,12 +27,6 @@ class SceneStream:
             self.scene.step(1.0 / self.fps)
         self.n += 1
         img, _ = self.scene.render(want_truth=False)
-        # keep the truth accumulators bounded on an endless run
-        tr = self.scene.truth
-        if len(tr.loop_events) > 10000:
-            del tr.loop_events[:5000]
-        if len(tr.crossings) > 10000:
-            del tr.crossings[:5000]
         return img, self.scene.t
 
     def site_dict(self) -> dict:

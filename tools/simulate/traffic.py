@@ -226,4 +226,5 @@ class Traffic:
 
 def lane_at_x(layout: RoadLayout, x: np.ndarray) -> np.ndarray:
     """Lane ids (1-based) of lateral positions."""
-    return np.array([layout.lanes[k].id for k in layout.lane_index_at(x)], dtype=np.int64) if len(x) else np.zeros(0, np.int64)
+    ids = np.array([ln.id for ln in layout.lanes], dtype=np.int64)
+    return ids[layout.lane_index_at(x)] if len(x) else np.zeros(0, np.int64)

@@ -47,6 +47,8 @@ class Shape:
     length: float
     width: float
     height: float
+    decal: np.ndarray | None = None  # (Q,) True for windows, lights and other details on a face
+    lamp: np.ndarray | None = None  # (Q,) grey value of a head/tail light when lit, 0 for other quads
 
 
 def _box(x0, x1, u0, u1, z0, z1) -> np.ndarray:
@@ -77,6 +79,8 @@ class _Builder:
         self.quads, self.normals, self.values, self.face_of = [], [], [], []
         self.parts, self.lights, self.light_front = [], [], []
         self.part_of: list[int] = []
+        self.is_decal: list[bool] = []
+        self.lamp_value: list[float] = []
         self.exposure = 1.0
         self.face_index: dict = {}
 
@@ -99,6 +103,8 @@ class _Builder:
             self.values.append(self._shade(albedo, n))
             self.face_of.append(len(self.quads) - 1)
             self.part_of.append(len(self.parts) - 1)
+            self.is_decal.append(False)
+            self.lamp_value.append(0.0)
             self.face_index[(tuple(b), f)] = len(self.quads) - 1
         return first
 
@@ -111,9 +117,12 @@ class _Builder:
         self.values.append(emissive if emissive is not None else self._shade(albedo, n))
         self.face_of.append(idx)
         self.part_of.append(self.part_of[idx])
+        self.is_decal.append(True)
+        self.lamp_value.append(0.0)
 
     def lamp(self, b: tuple, face: int, a0, a1, c0, c1, day_albedo: float, night_value: float, is_front: bool):
         self.decal(b, face, a0, a1, c0, c1, day_albedo, night_value if self.night else None)
+        self.lamp_value[-1] = night_value
         self.lights.append(_face_quad(b, face, a0, a1, c0, c1).mean(axis=0))
         self.light_front.append(is_front)
 
@@ -125,6 +134,8 @@ class _Builder:
         self.normals = [self.normals[i] for i in order]
         self.values = [self.values[i] for i in order]
         self.face_of = list(part_of[order])
+        decal = np.array(self.is_decal, dtype=bool)[order]
+        lamp = np.array(self.lamp_value, dtype=np.float64)[order]
         q = np.array(self.quads)
         q[..., 1] *= self.dir  # local u (forward) -> signed road Y offset from the front point
         parts = np.array(self.parts)
@@ -132,7 +143,7 @@ class _Builder:
         lights = np.array(self.lights).reshape(-1, 3)
         lights[:, 1] *= self.dir
         return Shape(q, np.array(self.normals), np.array(self.values), np.array(self.face_of), parts.reshape(-1, 3),
-                     parts, lights, np.array(self.light_front, dtype=bool), length, width, height)
+                     parts, lights, np.array(self.light_front, dtype=bool), length, width, height, decal, lamp)
 
 
 def build_shape(cls: str, rng: np.random.Generator, direction: int, light: np.ndarray, ambient: float,
