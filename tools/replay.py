@@ -156,7 +156,10 @@ def replay_video(
             if got is None:
                 break
             frame, colour = got
-            states = pipe.step(frame)
+            try:
+                states = pipe.step(frame)
+            except ValueError as e:  # a frame the pipeline cannot take (e.g. the size changed mid-stream)
+                raise ReplayError(f"{video}: {e}") from None
             upd = measures.step(frame.t, frame.wall, states)
             res.periods += upd.periods
             res.loop_events += upd.loop_events
