@@ -19,7 +19,7 @@ UNSEEN, LINKED, APART, MERGED = 0, 1, 2, 3  # MERGED: a fragment joined to its v
 NEAR_REP_M = 3.0  # features this close along the road to the representative one give the velocity
 MIN_TRAVEL_M = 1.0  # a group is reported once it has moved this far (static texture never does)
 MIN_SPEED_MPS = 1.5  # ... and is moving at least this fast (vehicles are found while they move)
-FRAGMENT_X_MARGIN_M = 0.8  # a new group within a known vehicle's extent (plus this) is part of it
+FRAGMENT_X_MARGIN_M = 0.5  # a new group within a known vehicle's extent (plus this) is part of it
 
 
 @njit(cache=True)
@@ -149,7 +149,10 @@ class Grouper:
             vids = self.fvid[members]
             vids = vids[vids >= 0]
             vid = -1
-            if len(vids):
+            if len(vids) and vids.min() == vids.max():  # the common case: one id already
+                if int(vids[0]) not in claimed:
+                    vid = int(vids[0])
+            elif len(vids):
                 u, c = np.unique(vids, return_counts=True)
                 for k in np.lexsort((u, -c)):
                     if int(u[k]) not in claimed:
@@ -188,6 +191,11 @@ class Grouper:
                 self.tracks[vid] = tr
             tr.frames += 1
             tr.n_max = max(tr.n_max, len(members))
+            if not tr.reported and tr.n_max < p.min_features:
+                if not tr.trajectory:  # too small to be a vehicle yet: only remember where it started
+                    tr.trajectory.append((t, float(s[members[0], 0]), float(s[members[0], 1])))
+                    tr.start_y = tr.trajectory[0][2]
+                continue
             rep = members[np.argmax(px[members, 1])]  # nearest the camera: lowest in the image
             ys = s[members, 1]
             lz = self.zones.by_index(tr.lane_index) if tr.lane_index > 0 else None
@@ -217,7 +225,8 @@ class Grouper:
                 vy=vy, length=length, n_features=int(len(members)),
             )
             tr.last = st
-            tr.x_lo, tr.x_hi = float(s[members, 0].min()), float(s[members, 0].max())
+            low = members[np.abs(ys - s[rep, 1]) < NEAR_REP_M]  # the low part: the footprint across the road
+            tr.x_lo, tr.x_hi = float(s[low, 0].min()), float(s[low, 0].max())
             tr.trajectory.append((t, st.x, rep_y))
             moved = abs(rep_y - tr.start_y) >= MIN_TRAVEL_M and abs(vy) >= MIN_SPEED_MPS
             if not tr.reported and tr.n_max >= p.min_features and tr.frames >= p.min_track_frames and moved:
@@ -249,7 +258,7 @@ class Grouper:
             if not other.reported and (other.first_t > tr.first_t or other.n_max < tr.n_max):
                 continue
             k = st.vy / o.vy
-            if not 0.6 <= k <= 2.5:  # young features' speeds are rough
+            if not 0.85 <= k <= 2.5:
                 continue
             gx, gy = st.x, y
             if self.foot is not None and k > 1.05:

@@ -33,6 +33,7 @@ class HealthMonitor:
         self._transitions: list[Transition] = []
         self._prev_thumb: np.ndarray | None = None
         self._same_since: float | None = None
+        self._prev_t = 0.0
         self._last_hit: dict[int, float] = {}
         self._call_since: dict[int, float] = {}
         self.mean_grey = float("nan")
@@ -73,10 +74,11 @@ class HealthMonitor:
         self.mean_grey = float(thumb.mean())
         if self._prev_thumb is not None and thumb.shape == self._prev_thumb.shape and np.array_equal(thumb, self._prev_thumb):
             if self._same_since is None:
-                self._same_since = t
+                self._same_since = self._prev_t  # unchanged since the previous frame arrived
         else:
             self._same_since = None
         self._prev_thumb = thumb.copy()
+        self._prev_t = t
         frozen = self._same_since is not None and t - self._same_since >= self.cfg.frozen_s
         self.set(HealthFault.FROZEN_IMAGE, frozen, t, wall, "image unchanged")
         self.set(HealthFault.TOO_DARK, self.mean_grey < self.cfg.dark_level, t, wall,

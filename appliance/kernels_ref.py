@@ -52,7 +52,7 @@ def track_one_ref(img, Hm, Hinv, off, dt, s, P, tmpl, age, radius, ncc_min, q_ac
     ua, va = _project(Hinv, sp[0] + np.sqrt(Pp[0, 0]), sp[1])
     ub, vb = _project(Hinv, sp[0], sp[1] + np.sqrt(Pp[1, 1]))
     sig_px = max(abs(ua + off[0] - u) + abs(va + off[1] - v), abs(ub + off[0] - u) + abs(vb + off[1] - v))
-    r = min(radius if age >= 3 else 2 * radius, max(2, int(np.ceil(3.0 * sig_px + 1.0))))
+    r = min(radius if age >= 3 else radius + radius // 2, max(2, int(np.ceil(3.0 * sig_px + 1.0))))
     h = tmpl.shape[0] // 2
     cx, cy = int(np.floor(u + 0.5)), int(np.floor(v + 0.5))
     hh, ww = img.shape

@@ -26,6 +26,7 @@ REPEAT_MAX_DIFF = 20
 LANE_MARGIN_M = 2.0  # features this far beyond their lane's along-road extent are dropped
 LK_WIN = (15, 15)
 LK_LEVELS = 3
+LK_MARGIN_PX = 64  # crop margin around new corners for the initial-velocity flow (> motion per frame)
 
 
 class VisionPipeline:
@@ -174,10 +175,16 @@ class VisionPipeline:
         if not len(pts):
             return
         # where each new corner was one frame earlier (pyramidal LK), for its initial velocity
-        p0 = pts.astype(np.float32).reshape(-1, 1, 2)
-        prev_pts, status, _ = cv2.calcOpticalFlowPyrLK(img, self.prev, p0, None, winSize=LK_WIN, maxLevel=LK_LEVELS)
+        # (on a crop around the new corners: pyramids of the whole frame would cost more than the rest)
+        m = LK_MARGIN_PX
+        h, w = img.shape
+        x0, y0 = max(0, int(pts[:, 0].min()) - m), max(0, int(pts[:, 1].min()) - m)
+        x1, y1 = min(w, int(pts[:, 0].max()) + m + 1), min(h, int(pts[:, 1].max()) + m + 1)
+        p0 = (pts - [x0, y0]).astype(np.float32).reshape(-1, 1, 2)
+        prev_pts, status, _ = cv2.calcOpticalFlowPyrLK(
+            img[y0:y1, x0:x1], self.prev[y0:y1, x0:x1], p0, None, winSize=LK_WIN, maxLevel=LK_LEVELS)
         ok = status.reshape(-1).astype(bool)
-        pts, prev_pts = pts[ok], prev_pts.reshape(-1, 2)[ok].astype(np.float64)
+        pts, prev_pts = pts[ok], prev_pts.reshape(-1, 2)[ok].astype(np.float64) + [x0, y0]
         ref = pts - np.asarray(self.offset)
         lanes = self.zones.lane_at_px(ref)
         inlane = lanes > 0

@@ -127,7 +127,7 @@ class Service:
         self._pending_health: list[tuple] = []
         self._last_store_try = 0.0
         self._last_state_save = 0.0
-        self._last_prune = 0.0
+        self._last_prune = time.monotonic() - PRUNE_EVERY_S + 60.0  # first pruning a minute after start
         self._last_frame_mono = time.monotonic()
         self._fps_window: list[float] = []
         self._load = [time.monotonic(), 0, 0]  # window start, frames, dropped
@@ -452,7 +452,18 @@ class Service:
         if len(self._fps_window) > 1:
             self.fps = (len(self._fps_window) - 1) / max(1e-6, self._fps_window[-1] - self._fps_window[0])
         with self._lock:
-            vehicles = self.pipeline.step(frame)
+            try:
+                vehicles = self.pipeline.step(frame)
+            except ValueError as e:  # a frame the pipeline cannot take (size, type): skip it, say why
+                if not self.health.active(HealthFault.CONFIG):
+                    log.error("frame rejected: %s", e)
+                self.health.set(HealthFault.CONFIG, True, frame.t, frame.wall, str(e))
+                self._record_health(frame.wall)
+                self._publish(frame.wall, self.measures.channels(), [])
+                self._housekeeping(now)
+                return
+            if self.health.active(HealthFault.CONFIG):
+                self.health.set(HealthFault.CONFIG, False, frame.t, frame.wall, "frames accepted again")
             upd = self.measures.step(frame.t, frame.wall, vehicles)
             channels = self.measures.channels()
         self.tracked = sum(1 for v in vehicles if not v.finished)
@@ -682,8 +693,9 @@ class Service:
         keep_pipeline = _same(old, new, "lanes", "calibration", "fiducials", "tracking", "source")
         keep_source = _same(old, new, "source")
         keep_outputs = _same(old, new, "outputs", "loops")
-        new_store = self._store_path() != Path(self._store_path_override or new.store.path) and not self._store_path_override
+        old_store = self._store_path()
         self.site = new
+        new_store = self._store_path() != old_store
         self.health.cfg = new.health
         if not keep_source:
             self._stop_reader()

@@ -103,7 +103,7 @@ def track_step(img, Hm, Hinv, off_x, off_y, dt, alive, px, s, P, tmpl, age, miss
     q12 = q_acc * q_acc * dt2 * dt / 2.0
     q22 = q_acc * q_acc * dt2
     matched = 0
-    scores = np.empty((4 * radius + 1, 4 * radius + 1))
+    scores = np.empty((3 * radius + 3, 3 * radius + 3))
     for i in range(alive.shape[0]):
         if not alive[i]:
             continue
@@ -135,7 +135,7 @@ def track_step(img, Hm, Hinv, off_x, off_y, dt, alive, px, s, P, tmpl, age, miss
         ua, va = _project(Hinv, X + np.sqrt(Pp[0, 0]), Y)
         ub, vb = _project(Hinv, X, Y + np.sqrt(Pp[1, 1]))
         sig_px = max(abs(ua + off_x - u) + abs(va + off_y - v), abs(ub + off_x - u) + abs(vb + off_y - v))
-        r_cap = radius if age[i] >= 3 else 2 * radius
+        r_cap = radius if age[i] >= 3 else radius + radius // 2
         r = min(r_cap, max(2, int(np.ceil(3.0 * sig_px + 1.0))))
         cx = int(np.floor(u + 0.5))
         cy = int(np.floor(v + 0.5))

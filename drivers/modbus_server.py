@@ -330,6 +330,9 @@ class _GapHandler(ServerRequestHandler):
         super().data_received(data)
 
 
+MAX_MBAP_LENGTH = 254  # unit id + PDU of the largest Modbus/TCP ADU (260 bytes)
+
+
 class _TcpHandler(ServerRequestHandler):
     """Answers every complete request in a received chunk, each with its own PDU. pymodbus 3.16
     handles only the first and keeps the rest until more bytes arrive, which leaves a master whose
@@ -338,19 +341,28 @@ class _TcpHandler(ServerRequestHandler):
     def callback_data(self, data: bytes, addr: tuple | None = None) -> int:
         used = 0
         while used < len(data):
+            rest = data[used:]
+            if len(rest) >= 6 and (rest[2:4] != b"\0\0" or int.from_bytes(rest[4:6], "big") > MAX_MBAP_LENGTH):
+                return len(data)  # not Modbus/TCP, or longer than any request: nothing after it can be framed
             try:
-                n = TransactionManager.callback_data(self, data[used:], addr)
+                n = TransactionManager.callback_data(self, rest, addr)
             except ModbusIOException as exc:  # undecodable request: exception 0x80, fixed by _ExceptionFixer
                 response = ExceptionResponse(exc.fcode or 0, exception_code=ExcCodes.ILLEGAL_FUNCTION,
                                              device_id=exc.dev_id, transaction=exc.transaction_id)
                 self.server_send(response, addr)
-                return len(data)
+                used += 6 + int.from_bytes(rest[4:6], "big")  # skip just that request
+                continue
             if not n:
                 break
             used += n
             if self.last_pdu:
                 asyncio.ensure_future(self._answer(self.last_pdu, self.last_addr))
-        return used
+        return min(used, len(data))
+
+    def send(self, data: bytes, addr: tuple | None = None) -> None:
+        kept = self.recv_buffer  # pymodbus clears it on send, losing a request that is arriving
+        super().send(data, addr)
+        self.recv_buffer = kept
 
     async def _answer(self, pdu, addr) -> None:
         try:
@@ -394,10 +406,14 @@ def _placeholder() -> SimDevice:
 
 
 def bench_call_latency(output: _ModbusOutput, host: str, port: int, n: int = 200) -> np.ndarray:
-    """Seconds from publish() of a snapshot that toggles channel 1's call to a Modbus TCP client
-    on (host, port) reading the new bit (the client polls as fast as it can)."""
+    """Seconds from publish() of a snapshot that toggles the first channel's call to a Modbus TCP
+    client on (host, port) reading the new bit (the client polls as fast as it can)."""
     from pymodbus.client import ModbusTcpClient
 
+    channels = output.store.layout.channels
+    if not channels:
+        raise ValueError("the site has no loops, so no call to measure")
+    first = channels[0]
     client = ModbusTcpClient(host, port=port, timeout=3)
     if not client.connect():
         raise ConnectionError(f"cannot connect to {host}:{port}")
@@ -406,12 +422,12 @@ def bench_call_latency(output: _ModbusOutput, host: str, port: int, n: int = 200
     try:
         for i in range(n):
             want = i % 2 == 0
-            chans = [ChannelState(c, "", 0, want if c == 1 else False, i, 0.0, None, None) for c in output.store.layout.channels]
+            chans = [ChannelState(c, "", 0, want and c == first, i, 0.0, None, None) for c in channels]
             snap = DetectorSnapshot(wall=time.time(), uptime_s=float(i), channels=chans, faults=0, fps=0.0,
                                     last_period=[], period_seq=0)
             t0 = time.perf_counter()
             output.publish(snap, [])
-            while client.read_discrete_inputs(0, count=1, device_id=unit).bits[0] != want:
+            while client.read_discrete_inputs(rg.DI_CALL + first - 1, count=1, device_id=unit).bits[0] != want:
                 if time.perf_counter() - t0 > 5.0:
                     raise TimeoutError("the call bit did not change within 5 s")
             out.append(time.perf_counter() - t0)

@@ -4,6 +4,7 @@ RTU (raw bytes through a pty): no crash, no hang, and the next good request gets
 from __future__ import annotations
 
 import select
+from collections import deque
 import socket
 import struct
 import time
@@ -38,7 +39,7 @@ def random_pdu(rng: np.random.Generator) -> bytes:
     return bytes([fc]) + body
 
 
-def good_tcp(s: socket.socket, tid: int) -> list[int]:
+def good_tcp(s: socket.socket, tid: int, recent=()) -> list[int]:
     s.sendall(struct.pack(">HHHBBHH", tid, 0, 6, 1, 4, rg.CH_COUNT, 3))
     buf, deadline = b"", time.monotonic() + 5
     while time.monotonic() < deadline:
@@ -55,18 +56,21 @@ def good_tcp(s: socket.socket, tid: int) -> list[int]:
             if t == tid:
                 assert frame[7] == 4 and frame[8] == 6, f"wrong answer {frame.hex()}"
                 return list(struct.unpack(">3H", frame[9:15]))
-    raise AssertionError("no answer to a good request (server hung?)")
+    raise AssertionError("no answer to a good request; sent before: " + " ".join(f.hex() for f in recent))
 
 
 def fuzz_tcp(port: int, n: int, seed: int) -> dict[str, int]:
     rng = np.random.default_rng(seed)
     stats = {"framed": 0, "raw": 0, "answered": 0, "checks": 0}
     conn = socket.create_connection(("127.0.0.1", port), timeout=5)
+    recent: deque[bytes] = deque(maxlen=10)  # sent on conn since the last check, for the failure message
     for i in range(n):
         if rng.random() < 0.6:  # MBAP-framed random PDU on a persistent connection
             pdu = random_pdu(rng)
             unit = int(rng.choice([1, 1, 1, 0, 255, rng.integers(0, 256)]))
-            conn.sendall(struct.pack(">HHHB", i % 30000, 0, len(pdu) + 1, unit) + pdu)
+            frame = struct.pack(">HHHB", i % 30000, 0, len(pdu) + 1, unit) + pdu
+            conn.sendall(frame)
+            recent.append(frame)
             stats["framed"] += 1
             if select.select([conn], [], [], 0.05)[0]:
                 if not conn.recv(4096):
@@ -82,7 +86,8 @@ def fuzz_tcp(port: int, n: int, seed: int) -> dict[str, int]:
                 s.sendall(junk)
             stats["raw"] += 1
         if i % 10 == 9:
-            assert good_tcp(conn, 40000 + i % 20000) == COUNTS, f"after fuzz case {i}"
+            assert good_tcp(conn, 40000 + i % 20000, recent) == COUNTS, f"after fuzz case {i}"
+            recent.clear()
             stats["checks"] += 1
     with socket.create_connection(("127.0.0.1", port), timeout=5) as s:
         assert good_tcp(s, 65000) == COUNTS

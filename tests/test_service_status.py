@@ -107,13 +107,13 @@ def test_running_service_status_commands_reload_and_clean_stop(tmp_path, shared_
 
 def test_live_source_killed_mid_period_resumes_it_as_partial(tmp_path, shared_data, port) -> None:
     # realtime sources are live: a restart continues the saved period in progress, marked partial
-    cfg = cdnet_site(tmp_path, shared_data, frames=100, period_s=4,
+    cfg = cdnet_site(tmp_path, shared_data, frames=100, period_s=3,
                      source={"realtime": True, "loop": True}, status={"enabled": True, "port": port})
     proc = start("run", "--config", str(cfg))
     try:
         st = wait_status(port, proc, lambda s: s["period_seq"] >= 1, timeout=60)
         seq = st["period_seq"]
-        wait_status(port, proc, lambda s: s["uptime_s"] >= st["uptime_s"] + 2.5)  # > STATE_SAVE_S into the period
+        wait_status(port, proc, lambda s: s["uptime_s"] >= st["uptime_s"] + 2.2)  # > STATE_SAVE_S into the period
         proc.kill()
         proc.communicate(timeout=30)
         proc = start("run", "--config", str(cfg))

@@ -16,7 +16,7 @@ import pytest
 from appliance.config import load_demo, load_site
 from appliance.types import LaneAggregate
 from tools.simulate import PRESETS, SceneStream, render_scenario
-from tools.simulate.truth import read_aggregates
+from tools.simulate.truth import read_aggregates, read_loop_events, read_vehicles
 
 
 def _rows(path: Path) -> list[dict]:
@@ -72,9 +72,13 @@ def test_site_toml_loads_and_truth_files_have_their_columns(demo_run: Path) -> N
     assert veh and {"frame", "bbox_x0", "visible_frac", "y_front_m"} <= set(veh[0])
     frames = {int(r["frame"]) for r in veh}
     assert max(frames) == 99
-    loops = _rows(demo_run / "truth" / "loop_events.csv")
+    loops = read_loop_events(demo_run / "truth" / "loop_events.csv")
+    assert loops
     for e in loops:
-        assert float(e["wall_on"]) - float(e["t_on"]) == pytest.approx(1767225600.0)
+        assert e.wall_on - e.t_on == pytest.approx(1767225600.0) and e.t_off > e.t_on
+    arr = read_vehicles(demo_run / "truth" / "vehicles.csv")
+    assert len(arr) == len(veh) and set(arr["class"]) <= {"motorcycle", "car", "van", "truck", "artic", "bus"}
+    assert np.all(arr["bbox_x1"] >= arr["bbox_x0"]) and np.all((arr["visible_frac"] >= 0) & (arr["visible_frac"] <= 1))
 
 
 def test_defects_are_recorded_in_frames_csv(tmp_path: Path) -> None:
@@ -122,3 +126,13 @@ def test_help_lists_presets_and_bad_input_is_named() -> None:
     assert r.exit_code == 2 and "sunny" in r.output
     with pytest.raises(ValueError, match="unknown scene parameter 'lanez'"):
         render_scenario("demo", 1, 1.0, Path("unused"), lanez=3)
+
+
+def test_same_seed_gives_identical_truth_files(tmp_path: Path) -> None:
+    outs = [render_scenario("two-directions", 5, 1.6, tmp_path / name, width=320, height=240) for name in "ab"]
+    outs.append(render_scenario("two-directions", 6, 1.6, tmp_path / "c", width=320, height=240))
+    files = ("vehicles.csv", "frames.csv", "aggregates.csv")
+    for f in files:
+        assert (outs[0].truth_dir / f).read_bytes() == (outs[1].truth_dir / f).read_bytes()
+    assert (outs[0].truth_dir / "vehicles.csv").read_bytes() != (outs[2].truth_dir / "vehicles.csv").read_bytes()
+    assert outs[0].site.read_text() == outs[1].site.read_text()

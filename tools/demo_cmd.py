@@ -3,7 +3,6 @@ with a live per-lane table on the terminal."""
 
 from __future__ import annotations
 
-import os
 import sys
 import threading
 import time
@@ -89,4 +88,4 @@ def demo(seconds: float | None, workdir: str, period_s: int | None, every: float
     if service is not None:
         click.echo(lane_table(service))
         click.echo(f"demo ran {time.monotonic() - started:.0f} s; {service.frames} frames; store {store_path}")
-        os.sys.stdout.flush()
+        sys.stdout.flush()

@@ -271,7 +271,7 @@ def source_video(site: SiteConfig) -> str:
 @click.command(name="replay")
 @click.argument("video", required=False)
 @click.option("--config", "config_path", required=True, type=click.Path(dir_okay=False), help="Site TOML.")
-@click.option("--fps", type=float, default=None, help="Frame rate (image sequences carry none; default: source.fps).")
+@click.option("--fps", type=float, default=None, help="Frame rate; overrides the file's clock. Image sequences carry none: default source.fps.")
 @click.option("--out", type=click.Path(dir_okay=False), default=None, help="results.sqlite or results.csv")
 @click.option("--vehicles", is_flag=True, help="Also write loop events and per-vehicle records.")
 @click.option("--annotate", type=click.Path(dir_okay=False), default=None, help="Write an annotated video (mp4).")

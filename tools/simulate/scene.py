@@ -11,6 +11,7 @@ from tools.simulate.background import render_background, shadow_points
 from tools.simulate.camera import Camera
 from tools.simulate.conditions import Conditions
 from tools.simulate.presets import SceneParams, scene_params
+from tools.simulate.raster import fill_quads
 from tools.simulate.road import RoadLayout
 from tools.simulate.traffic import Traffic, lane_at_x
 from tools.simulate.truth import START_WALL, StepState, TruthAccumulator, TruthLane, TruthLoop
@@ -20,6 +21,8 @@ LOOP_LENGTH_M = 1.8
 WARM_UP_S = 90.0
 FAR_DETAIL_M = 110.0
 NIGHT_EXPOSURE = 0.28
+# corner indices of the six faces of a box built by vehicles._box (index = 4 z + 2 u + x)
+BOX_FACES = np.array([[0, 1, 3, 2], [4, 5, 7, 6], [0, 1, 5, 4], [2, 3, 7, 6], [0, 2, 6, 4], [1, 3, 7, 5]])
 
 
 class Scene:
@@ -214,18 +217,17 @@ class Scene:
             if far.any():
                 decal = np.concatenate([sh.decal for sh in shapes])
                 facing &= ~(decal & np.repeat(far, nq))
-            qpts = np.round(qpx * 16).astype(np.int32)
             cpx, cdep = cam.project(corners)
         q_end, c_end = np.cumsum(nq), np.cumsum(npt)
         if self.shadows and len(idx):
+            # a box's shadow is the union of its faces' shadows: 6 ground quads per part, one kernel call
             self._mask.fill(0)
             sp = shadow_points(corners, self.sun)
             _, sdep = cam.project(np.column_stack([sp, np.zeros(len(sp))]))
-            sok = np.minimum.reduceat(sdep, c_end - npt) > 0.5  # shadow wholly in front of the camera
-            spx = np.round(cam.road_to_image(sp) * 16).astype(np.int32)
-            for k in np.nonzero(sok)[0]:
-                hull = cv2.convexHull(spx[c_end[k] - npt[k] : c_end[k]])
-                cv2.fillConvexPoly(self._mask, hull, 255, cv2.LINE_8, 4)
+            part_ok = (sdep.reshape(-1, 8) > 0.5).all(axis=1)  # shadow wholly in front of the camera
+            squads = cam.road_to_image(sp).reshape(-1, 8, 2)[:, BOX_FACES].reshape(-1, 4, 2)
+            sel = np.nonzero(np.repeat(part_ok, len(BOX_FACES)))[0]
+            fill_quads(self._mask, squads, self._shadow_vals(len(squads)), sel)
             cv2.copyTo(self.bg_shadow, self._mask, img)
         if self.p.rain and len(idx):
             self._reflections(img, allq, alln, allv)
@@ -233,15 +235,17 @@ class Scene:
             self._beam.fill(0)
             for k, i in enumerate(idx):
                 w = tr.shapes[i].width / 2
-                y2 = yf[i] + d[i] * 30.0
-                poly = np.array([[tr.x[i] - w, yf[i]], [tr.x[i] + w, yf[i]], [tr.x[i] + w + 2.0, y2], [tr.x[i] - w - 2.0, y2]])
-                if (poly[:, 1] > 3.0).all():
-                    cv2.fillConvexPoly(self._beam, np.round(cam.road_to_image(poly) * 16).astype(np.int32), 45,
-                                       cv2.LINE_8, 4)
-            cv2.add(img, cv2.blur(self._beam, (9, 9)), dst=img)
+                for reach, level in ((35.0, 14), (22.0, 28), (12.0, 45)):  # the beam fades with distance
+                    y2 = yf[i] + d[i] * reach
+                    spread = 2.0 * reach / 35.0
+                    poly = np.array([[tr.x[i] - w, yf[i]], [tr.x[i] + w, yf[i]],
+                                     [tr.x[i] + w + spread, y2], [tr.x[i] - w - spread, y2]])
+                    if (poly[:, 1] > 3.0).all():
+                        cv2.fillConvexPoly(self._beam, np.round(cam.road_to_image(poly) * 16).astype(np.int32),
+                                           level, cv2.LINE_8, 4)
+            cv2.add(img, cv2.blur(self._beam, (15, 15)), dst=img)
         if len(idx):
             vis_arr = np.nonzero(facing)[0]
-            vis = vis_arr.tolist()
             vis_lo = np.searchsorted(vis_arr, q_end - nq).tolist()
             vis_hi = np.searchsorted(vis_arr, q_end).tolist()
             if self.lamps_dynamic:
@@ -249,7 +253,6 @@ class Scene:
                 if self.night_lights:
                     lamp = np.concatenate([sh.lamp for sh in shapes])
                     allv = np.where(lamp > 0, lamp, allv)
-            vals = allv.tolist()
         depth = np.hypot(tr.x[idx] - cam.x_m, yc[idx])
         objs = []
         if len(idx) and len(self.objects):
@@ -268,8 +271,12 @@ class Scene:
         if want_truth:
             self._idbuf.fill(0)
         hulls = {}
+        batch: list[np.ndarray] = []  # visible quads of consecutive vehicles, drawn in one kernel call
         for _, kind, k in order:
             if kind == 1:
+                if batch:
+                    fill_quads(img, qpx, allv, np.concatenate(batch))
+                    batch = []
                 o = self.objects[k]
                 self._paste(img, o)
                 if want_truth:
@@ -278,8 +285,7 @@ class Scene:
                     roi = self._idbuf[y0 : y0 + mh.shape[0], x0 : x0 + mh.shape[1]]
                     roi[mh[: roi.shape[0], : roi.shape[1]]] = 65535
                 continue
-            for qi in vis[vis_lo[k] : vis_hi[k]]:
-                cv2.fillConvexPoly(img, qpts[qi], vals[qi], cv2.LINE_8, 4)
+            batch.append(vis_arr[vis_lo[k] : vis_hi[k]])
             if want_truth:
                 c0 = c_end[k] - npt[k]
                 if (cdep[c0 : c_end[k]] <= 0.5).any():
@@ -288,6 +294,8 @@ class Scene:
                 hull = cv2.convexHull(np.round(px * 8).astype(np.int32))  # half resolution, 4 bits subpixel
                 cv2.fillConvexPoly(self._idbuf, hull, int(k + 1), cv2.LINE_8, 4)
                 hulls[k] = (px, hull)
+        if batch:
+            fill_quads(img, qpx, allv, np.concatenate(batch))
         if self.night_lights:
             self._lights(img, idx, offs, d)
         dxy = self.conditions.offset(tr.t)
@@ -312,6 +320,11 @@ class Scene:
                     visible_frac=float(min(1.0, counts[k + 1] / max(area, 1.0))),
                 ))
         return out, rows
+
+    def _shadow_vals(self, n: int) -> np.ndarray:
+        if getattr(self, "_svals", None) is None or len(self._svals) < n:
+            self._svals = np.full(max(n, 512), 255.0)
+        return self._svals
 
     def _set_daylight(self, t: float) -> None:
         """Fade from day to night: background, shadows, vehicle shading, lights and the camera's gain target."""
