@@ -19,7 +19,10 @@ UNSEEN, LINKED, APART, MERGED = 0, 1, 2, 3  # MERGED: a fragment joined to its v
 NEAR_REP_M = 3.0  # features this close along the road to the representative one give the velocity
 MIN_TRAVEL_M = 1.0  # a group is reported once it has moved this far (static texture never does)
 MIN_SPEED_MPS = 1.5  # ... and is moving at least this fast (vehicles are found while they move)
-FRAGMENT_X_MARGIN_M = 0.5  # a new group within a known vehicle's extent (plus this) is part of it
+FRAGMENT_X_MARGIN_M = 0.5
+GHOST = -1  # host id meaning "a vehicle finalised in the last GHOST_S seconds"
+GHOST_S = 2.0
+FRAGMENT_X_MARGIN_NO_CAMERA_M = 2.0  # a new group within a known vehicle's extent (plus this) is part of it
 
 
 @njit(cache=True)
@@ -129,7 +132,10 @@ class Grouper:
         self.tracks: dict[int, VehicleTrack] = {}
         self.next_vid = 1
         self.finished_total = 0
-        self.foot = zones.camera  # (X, Y, height) of the camera, or None
+        self.recent: list[tuple[VehicleState, float, float]] = []  # finished vehicles, for their leftovers
+        cam = zones.camera  # (X, Y, height) of the camera, or None
+        # only a plausible pole or overpass camera is used to undo the height magnification
+        self.foot = cam if cam is not None and 3.0 <= cam[2] <= 60.0 else None
 
     def reset_slots(self, slots: np.ndarray) -> None:
         """Forget every pair involving slots that now hold new features."""
@@ -231,6 +237,10 @@ class Grouper:
             moved = abs(rep_y - tr.start_y) >= MIN_TRAVEL_M and abs(vy) >= MIN_SPEED_MPS
             if not tr.reported and tr.n_max >= p.min_features and tr.frames >= p.min_track_frames and moved:
                 host = self._host_of(tr, st, sign)
+                if host == GHOST:  # the rest of a vehicle already finalised: retire it quietly
+                    self.tracks.pop(vid)
+                    retire.append(members)
+                    continue
                 if host is not None:
                     self._link(members, groups[host])
                 else:
@@ -246,11 +256,19 @@ class Grouper:
         slots = np.concatenate(retire) if retire else np.zeros(0, np.int64)
         return out, slots
 
-    def _host_of(self, tr: VehicleTrack, st: VehicleState, sign: int) -> int | None:
+    def _host_of(self, tr: VehicleTrack, st: VehicleState, sign: int) -> int | None:  # noqa: C901
         """A reported vehicle that this new group is a part of: after undoing the height magnification
         (its projected speed over the vehicle's, k >= 1) the group's near end falls inside the vehicle's
         footprint. Tall vehicles' tops seen in the next lane, or behind them, are such fragments."""
         y = tr.trajectory[-1][2]
+        self.recent = [r for r in self.recent if st.t - r[0].t <= GHOST_S]
+        for o, x_lo, x_hi in self.recent:
+            if o.vy * st.vy <= 0 or not 0.85 <= st.vy / o.vy <= 2.5:
+                continue
+            dy = o.vy * (st.t - o.t)
+            lo, hi = min(o.y_front, o.y_rear) + dy - 1.0, max(o.y_front, o.y_rear) + dy + 1.0
+            if lo <= y <= hi and x_lo - FRAGMENT_X_MARGIN_NO_CAMERA_M <= st.x <= x_hi + FRAGMENT_X_MARGIN_NO_CAMERA_M:
+                return GHOST
         for vid, other in self.tracks.items():
             o = other.last
             if vid == tr.id or o is None or o.t != st.t or o.vy * st.vy <= 0:
@@ -261,11 +279,14 @@ class Grouper:
             if not 0.85 <= k <= 2.5:
                 continue
             gx, gy = st.x, y
-            if self.foot is not None and k > 1.05:
-                gx = self.foot[0] + (st.x - self.foot[0]) / k
-                gy = self.foot[1] + (y - self.foot[1]) / k
-            lo, hi = min(o.y_front, o.y_rear) - 1.0, max(o.y_front, o.y_rear) + 1.0
             m = FRAGMENT_X_MARGIN_M
+            if k > 1.05:
+                if self.foot is not None:
+                    gx = self.foot[0] + (st.x - self.foot[0]) / k
+                    gy = self.foot[1] + (y - self.foot[1]) / k
+                else:  # camera unknown: an elevated part may lie anywhere across the vehicle's lane
+                    m = FRAGMENT_X_MARGIN_NO_CAMERA_M
+            lo, hi = min(o.y_front, o.y_rear) - 1.0, max(o.y_front, o.y_rear) + 1.0
             if lo <= gy <= hi and other.x_lo - m <= gx <= other.x_hi + m:
                 return vid
         return None
@@ -289,6 +310,7 @@ class Grouper:
     def _finish(self, tr: VehicleTrack) -> VehicleState:
         st = tr.last
         self.finished_total += 1
+        self.recent.append((st, tr.x_lo, tr.x_hi))
         return VehicleState(
             id=st.id, t=st.t, x=st.x, y_front=st.y_front, y_rear=st.y_rear, vx=st.vx, vy=st.vy,
             length=st.length, n_features=st.n_features, finished=True,

@@ -418,6 +418,11 @@ def markdown(layout: Layout | None = None) -> str:
         "usual TCP wildcards) and returns exception 0B for other unit ids; Modbus RTU answers only its",
         "unit id and stays silent for every other id on the bus.",
         "",
+        "Values change once per processed frame (a call change is readable within a millisecond of the",
+        "frame being processed; `roadwatch registers --bench-latency N` measures it); the heartbeat counts",
+        "seconds from a timer in the output server. RTU: a silence of 50 ms (or 10 character times at low",
+        "baud rates) ends a frame, and an incomplete frame before it is dropped.",
+        "",
         "A typical controller poll: FC 2 at 0 (one call bit per channel); FC 4 at "
         f"{CH_COUNT} (rolling counts); FC 4 at {PERIOD} (period header) and at {LANES} ({LANE_STRIDE} registers per lane);",
         "FC 4 at 0 (heartbeat, health) to supervise the detector.",

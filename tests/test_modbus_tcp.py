@@ -121,7 +121,8 @@ def test_live_map_matches_published_measures(tcp_server, port):
     # (+-1 for a vehicle on the loop at either end)
     counts = client.read_input_registers(rg.CH_COUNT, count=3, device_id=1).registers
     assert abs(counts[0] - 360 / 3.1) <= 1.5 and abs(counts[1] - 360 / 4.3) <= 1.5
-    assert counts == [events[1], events[2], events[3]] or all(abs(a - b) <= 1 for a, b in zip(counts, events.values()))
+    # counts go up at loop entry, events are emitted at exit: a vehicle on a loop at the end differs by 1
+    assert all(0 <= a - b <= 1 for a, b in zip(counts, events.values())), (counts, events)
     assert snap.period_seq == 2  # periods ending at EPOCH+300 (partial) and EPOCH+600
     client.close()
 

@@ -255,12 +255,15 @@ class Scene:
                     allv = np.where(lamp > 0, lamp, allv)
         depth = np.hypot(tr.x[idx] - cam.x_m, yc[idx])
         objs = []
-        if len(idx) and len(self.objects):
+        if len(idx):
             starts = c_end - npt
             vx0 = np.minimum.reduceat(cpx[:, 0], starts)
             vx1 = np.maximum.reduceat(cpx[:, 0], starts)
             vy0 = np.minimum.reduceat(cpx[:, 1], starts)
             vy1 = np.maximum.reduceat(cpx[:, 1], starts)
+            in_front = (np.minimum.reduceat(cdep, starts) > 0.5).tolist()
+            hull_pts = np.round(cpx * 8).astype(np.int32)  # half resolution, 4 bits subpixel
+        if len(idx) and len(self.objects):
             ob = self._obj_box
             hit = ((vx1[:, None] >= ob[None, :, 0]) & (vx0[:, None] <= ob[None, :, 2])
                    & (vy1[:, None] >= ob[None, :, 1]) & (vy0[:, None] <= ob[None, :, 3])
@@ -287,13 +290,11 @@ class Scene:
                 continue
             batch.append(vis_arr[vis_lo[k] : vis_hi[k]])
             if want_truth:
-                c0 = c_end[k] - npt[k]
-                if (cdep[c0 : c_end[k]] <= 0.5).any():
+                if not in_front[k]:
                     continue
-                px = cpx[c0 : c_end[k]]
-                hull = cv2.convexHull(np.round(px * 8).astype(np.int32))  # half resolution, 4 bits subpixel
-                cv2.fillConvexPoly(self._idbuf, hull, int(k + 1), cv2.LINE_8, 4)
-                hulls[k] = (px, hull)
+                hull = cv2.convexHull(hull_pts[starts[k] : c_end[k]])
+                cv2.fillConvexPoly(self._idbuf, hull, k + 1, cv2.LINE_8, 4)
+                hulls[k] = hull
         if batch:
             fill_quads(img, qpx, allv, np.concatenate(batch))
         if self.night_lights:
@@ -301,24 +302,27 @@ class Scene:
         dxy = self.conditions.offset(tr.t)
         out = self.conditions.apply(img, tr.t, dxy)
         if want_truth:
-            counts = np.bincount(self._idbuf.ravel(), minlength=len(idx) + 1)
+            counts = np.bincount(self._idbuf.ravel(), minlength=len(idx) + 1).tolist()
             W, H = cam.width, cam.height_px
-            for k, (px, hull) in hulls.items():
-                x0, y0 = px.min(axis=0) + dxy
-                x1, y1 = px.max(axis=0) + dxy
+            bx0, bx1 = (vx0 + dxy[0]).tolist(), (vx1 + dxy[0]).tolist()
+            by0, by1 = (vy0 + dxy[1]).tolist(), (vy1 + dxy[1]).tolist()
+            cols = {name: arr[idx].tolist() for name, arr in (
+                ("id", tr.id), ("lane", lane_ids), ("x", tr.x), ("yf", yf), ("yc", yc), ("v", tr.v), ("a", tr.a),
+                ("len", tr.length), ("d", d))}
+            for k, hull in hulls.items():
+                x0, x1, y0, y1 = bx0[k], bx1[k], by0[k], by1[k]
                 if x1 < 0 or y1 < 0 or x0 > W - 1 or y0 > H - 1:
                     continue
-                h = hull.astype(np.float64) / 16.0
-                area = cv2.contourArea(h.astype(np.float32)) + 0.5 * cv2.arcLength(h.astype(np.float32), True)
-                i = idx[k]
-                rows.append(dict(
-                    vehicle_id=int(tr.id[i]), **{"class": tr.cls[i]}, lane=int(lane_ids[i]), x_m=float(tr.x[i]),
-                    y_front_m=float(yf[i]), y_rear_m=float(yf[i] - d[i] * tr.length[i]), y_centre_m=float(yc[i]),
-                    speed_mps=float(tr.v[i]), accel_mps2=float(tr.a[i]), length_m=float(tr.length[i]),
-                    bbox_x0=float(max(x0, 0)), bbox_y0=float(max(y0, 0)),
-                    bbox_x1=float(min(x1, W - 1)), bbox_y1=float(min(y1, H - 1)),
-                    visible_frac=float(min(1.0, counts[k + 1] / max(area, 1.0))),
-                ))
+                h = hull.astype(np.float32) / 16.0
+                area = cv2.contourArea(h) + 0.5 * cv2.arcLength(h, True)
+                rows.append({
+                    "vehicle_id": cols["id"][k], "class": tr.cls[idx[k]], "lane": cols["lane"][k], "x_m": cols["x"][k],
+                    "y_front_m": cols["yf"][k], "y_rear_m": cols["yf"][k] - cols["d"][k] * cols["len"][k],
+                    "y_centre_m": cols["yc"][k], "speed_mps": cols["v"][k], "accel_mps2": cols["a"][k],
+                    "length_m": cols["len"][k], "bbox_x0": max(x0, 0.0), "bbox_y0": max(y0, 0.0),
+                    "bbox_x1": min(x1, W - 1.0), "bbox_y1": min(y1, H - 1.0),
+                    "visible_frac": min(1.0, counts[k + 1] / max(area, 1.0)),
+                })
         return out, rows
 
     def _shadow_vals(self, n: int) -> np.ndarray:
