@@ -20,6 +20,7 @@ NEAR_REP_M = 3.0  # features this close along the road to the representative one
 MIN_TRAVEL_M = 1.0  # a group is reported once it has moved this far (static texture never does)
 MIN_SPEED_MPS = 1.5  # ... and is moving at least this fast (vehicles are found while they move)
 FRAGMENT_X_MARGIN_M = 0.5
+MIN_LENGTH_M = 4.5  # the shortest car: a group this close behind a vehicle's front is part of it
 GHOST = -1  # host id meaning "a vehicle finalised in the last GHOST_S seconds"
 GHOST_S = 2.0
 FRAGMENT_X_MARGIN_NO_CAMERA_M = 2.0  # a new group within a known vehicle's extent (plus this) is part of it
@@ -98,6 +99,14 @@ def components(live, state, labels):
             r = parent[r]
         parent[a] = r
         labels[live[a]] = live[r]
+
+
+def _extent(o: VehicleState) -> tuple[float, float]:
+    """Along-road span a vehicle surely covers: its features' span, at least MIN_LENGTH_M behind its
+    front, plus a metre of slack each way."""
+    sign = 1.0 if o.y_front >= o.y_rear else -1.0
+    rear = o.y_front - sign * max(abs(o.y_front - o.y_rear), MIN_LENGTH_M)
+    return min(o.y_front, rear) - 1.0, max(o.y_front, rear) + 1.0
 
 
 @dataclass
@@ -266,7 +275,8 @@ class Grouper:
             if o.vy * st.vy <= 0 or not 0.85 <= st.vy / o.vy <= 2.5:
                 continue
             dy = o.vy * (st.t - o.t)
-            lo, hi = min(o.y_front, o.y_rear) + dy - 1.0, max(o.y_front, o.y_rear) + dy + 1.0
+            lo, hi = _extent(o)
+            lo, hi = lo + dy, hi + dy
             if lo <= y <= hi and x_lo - FRAGMENT_X_MARGIN_NO_CAMERA_M <= st.x <= x_hi + FRAGMENT_X_MARGIN_NO_CAMERA_M:
                 return GHOST
         for vid, other in self.tracks.items():
@@ -286,7 +296,7 @@ class Grouper:
                     gy = self.foot[1] + (y - self.foot[1]) / k
                 else:  # camera unknown: an elevated part may lie anywhere across the vehicle's lane
                     m = FRAGMENT_X_MARGIN_NO_CAMERA_M
-            lo, hi = min(o.y_front, o.y_rear) - 1.0, max(o.y_front, o.y_rear) + 1.0
+            lo, hi = _extent(o)
             if lo <= gy <= hi and other.x_lo - m <= gx <= other.x_hi + m:
                 return vid
         return None

@@ -74,6 +74,9 @@ class VirtualLoop:
         self.on_times: dict[int, float] = {}  # vehicle -> t_on, for speed traps
         self.partner: VirtualLoop | None = None
         self.now_wall: float | None = None
+        # the actuation in progress: vehicles overlapping on the loop give one actuation, as a real
+        # loop gives (a fragment of a vehicle does not add a count)
+        self.act: dict | None = None
 
     def update(
         self, vid: int, in_lane: bool, prev: tuple | None, cur: tuple, offset: float, was_in_lane: bool = True
@@ -96,8 +99,8 @@ class VirtualLoop:
             t_on = t0 + span[0] * dt if was_in_lane else t1
             p = self.active[vid] = _Presence(t_on, t_on + offset)
             self.on_times[vid] = t_on
-            self.count += 1
-            self.last_on_wall = t_on + offset
+            if self.act is None:
+                self._start(vid, t_on, offset)
         if span is not None:
             p.speeds.append(v1)
             p.length = len1
@@ -114,30 +117,52 @@ class VirtualLoop:
             return self._close(vid, t, offset)
         return None
 
-    def _close(self, vid: int, t_off: float, offset: float) -> LoopEvent:
+    def _start(self, vid: int, t_on: float, offset: float) -> None:
+        self.act = {"vid": vid, "t_on": t_on, "wall_on": t_on + offset, "t_off": t_on, "speed": None, "length": None}
+        self.count += 1
+        self.last_on_wall = t_on + offset
+
+    def _close(self, vid: int, t_off: float, offset: float) -> LoopEvent | None:
+        """A vehicle leaves the loop; the actuation ends when no vehicle is left on it."""
         p = self.active.pop(vid)
+        act = self.act
         t_off = max(t_off, p.t_on)
-        speed_kmh = float(np.mean(p.speeds)) * 3.6 if p.speeds else None
-        other = self.partner
-        if other is not None and vid in other.on_times:
-            dt = abs(p.t_on - other.on_times[vid])
-            if dt > 1e-3:
-                speed_kmh = abs(self.y0 - other.y0) / dt * 3.6
-        self.intervals.append((p.wall_on, t_off + offset))
-        self.last_speed = speed_kmh
-        self.last_length = p.length
-        cls = length_class(p.length, self.measures)
+        act["t_off"] = max(act["t_off"], t_off)
+        if vid == act["vid"]:
+            speed_kmh = float(np.mean(p.speeds)) * 3.6 if p.speeds else None
+            other = self.partner
+            if other is not None and vid in other.on_times:
+                dt = abs(p.t_on - other.on_times[vid])
+                if dt > 1e-3:
+                    speed_kmh = abs(self.y0 - other.y0) / dt * 3.6
+            act["speed"], act["length"] = speed_kmh, p.length
+        if any(q.t_on <= act["t_off"] for q in self.active.values()):
+            return None  # still occupied
+        # the loop went free at act["t_off"]; vehicles that arrived later (same frame) start a new one
+        ev = self._emit(offset)
+        if self.active:
+            first = min(self.active, key=lambda v: self.active[v].t_on)
+            self._start(first, self.active[first].t_on, offset)
+        return ev
+
+    def _emit(self, offset: float) -> LoopEvent:
+        act, self.act = self.act, None
+        self.intervals.append((act["wall_on"], act["t_off"] + offset))
+        self.last_speed = act["speed"]
+        self.last_length = act["length"]
+        cls = length_class(act["length"], self.measures)
         if cls is not None:
             self.class_counts[cls] = self.class_counts.get(cls, 0) + 1
         return LoopEvent(
-            loop_id=self.cfg.id, channel=self.cfg.channel, lane=self.cfg.lane, t_on=p.t_on, t_off=t_off,
-            wall_on=p.wall_on, wall_off=t_off + offset, speed_kmh=speed_kmh, length_m=p.length, vehicle_id=vid,
+            loop_id=self.cfg.id, channel=self.cfg.channel, lane=self.cfg.lane, t_on=act["t_on"], t_off=act["t_off"],
+            wall_on=act["wall_on"], wall_off=act["t_off"] + offset, speed_kmh=act["speed"], length_m=act["length"],
+            vehicle_id=act["vid"],
         )
 
     def occupied_s(self, w0: float, w1: float) -> float:
         """Seconds of [w0, w1] during which the loop was occupied (ongoing presences up to now)."""
         now = self.now_wall if self.now_wall is not None else w1
-        ongoing = [(p.wall_on, now) for p in self.active.values()]
+        ongoing = [(self.act["wall_on"], now)] if self.act is not None else []
         return union_length(self.intervals + ongoing, w0, w1)
 
     def prune(self, keep_after: float) -> None:
@@ -171,7 +196,7 @@ class VirtualLoop:
         return {
             "count": self.count, "class_counts": self.class_counts, "last_speed": self.last_speed,
             "last_length": self.last_length, "intervals": self.intervals,
-        }
+        }  # an actuation in progress is not kept: after a restart its vehicle is seen anew
 
     def restore(self, state: dict) -> None:
         self.count = int(state["count"])

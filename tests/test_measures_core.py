@@ -261,3 +261,41 @@ def test_restart_after_an_outage_marks_periods_partial():
     assert lane1[0].count == 10  # the 30 s seen before the outage, kept
     assert lane1[0].flow_vph == pytest.approx(1200.0, rel=0.1)  # per observed time, not per 60 s
     assert lane1[1].count == 0
+
+
+def test_fragment_crossing_right_behind_a_vehicle_is_not_counted():
+    site = make_site()
+    tm = TrafficMeasures(site)
+    counted = []
+    for i in range(40):
+        t = i * 0.04
+        y = 55.0 - 25.0 * t  # crosses 50 m at t = 0.2 s
+        vs = [VehicleState(1, t, -2.5, y, y + 4.5, 0, -25, 4.5, 8)]
+        if i >= 3:  # a roof fragment of it, 30 % faster in the road projection, crossing 0.03 s later
+            yf = 55.0 + 2.5 - 32.5 * (t - 0.0)
+            vs.append(VehicleState(2, t, -2.4, yf, yf + 1.0, 0, -32.5, 1.0, 3))
+        # a real follower 1.0 s behind
+        yb = 55.0 - 25.0 * (t - 1.0)
+        if yb < 60:
+            vs.append(VehicleState(3, t, -2.6, yb, yb + 4.5, 0, -25, 4.5, 8))
+        counted += tm.step(t, EPOCH + t, vs).crossings
+    assert [c.vehicle_id for c in counted] == [1, 3]
+    assert tm.merged_crossings == 1
+
+
+def test_overlapping_presences_make_one_actuation():
+    """A fragment of a vehicle on the loop at the same time adds no count, as on a real loop."""
+    site = make_site()
+    tm = TrafficMeasures(site)
+    events = []
+    for i in range(60):
+        t = i * 0.04
+        y = 34.0 - 10.0 * t  # over loop L1 [30, 31.8] from t = 0.22 s to 0.67 s
+        vs = [VehicleState(1, t, -2.5, y, y + 2.7, 0, -10, 2.7, 8)]
+        if 5 <= i <= 12:  # a fragment riding on it, appearing and vanishing while it is on the loop
+            vs.append(VehicleState(2, t, -2.4, y + 0.5, y + 1.5, 0, -10, 1.0, 3, finished=(i == 12)))
+        events += [e for e in tm.step(t, EPOCH + t, vs).loop_events if e.loop_id == "L1"]
+    assert len(events) == 1 and events[0].vehicle_id == 1
+    assert events[0].t_on == pytest.approx(0.22, abs=1e-9)  # front reaches 31.8 m
+    assert events[0].t_off == pytest.approx(0.67, abs=1e-9)  # rear leaves 30 m
+    assert tm.channels()[0].count == 1

@@ -8,7 +8,7 @@ import pytest
 
 from tools.simulate.scene import Scene
 
-CLEAN = dict(demand_vph=0.0, noise_sigma=0.0, auto_gain=False, shadows=False, motion_blur=False)
+CLEAN = dict(demand_vph=0.0, noise_sigma=0.0, auto_gain=False, shadows=False, motion_blur=False, defocus=0.0)
 
 
 @pytest.mark.parametrize("cls, y_front", [("car", 40.0), ("truck", 30.0), ("bus", 60.0)])

@@ -52,7 +52,6 @@ def test_track_step_matches_reference(seed):
     for i in range(n):
         extract_template(prev, int(round(px[i, 0])), int(round(px[i, 1])), tmpl[i])
         px[i] = np.round(px[i])
-    road = ref._project  # noqa: F841 - for readability below
     s = np.zeros((n, 4))
     for i in range(n):
         s[i, :2] = ref._project(Hm, px[i, 0], px[i, 1])

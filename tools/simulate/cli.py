@@ -40,6 +40,8 @@ def _preset_help() -> str:
 @click.option("--cam-height", type=click.FloatRange(min=3, max=40), default=None, help="Camera height (m).")
 @click.option("--tilt", type=click.FloatRange(min=3, max=80), default=None, help="Camera tilt down (degrees).")
 @click.option("--pan", type=float, default=None, help="Camera pan (degrees, + right); default aims at the road.")
+@click.option("--focal", type=click.FloatRange(min=0.3, max=5), default=None,
+              help="Focal length as a multiple of the image width (1.1 = about 49 degrees across).")
 @click.option("--repeat-frames", type=click.IntRange(1, 4), default=None, help="Write each frame N times (15 fps padded to 30 = 2).")
 @click.option("--drop-frames", type=click.FloatRange(0, 0.5), default=None, help="Probability of dropping a frame.")
 @click.option("--jitter-ms", type=click.FloatRange(min=0), default=None, help="Capture timestamp jitter (ms, s.d.).")
@@ -48,7 +50,7 @@ def _preset_help() -> str:
               help="Also save a PNG frame every SECONDS to OUT/frames/ (0 = none).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
 def simulate(preset, seed, seconds, out, width, height, fps, lanes, receding_lanes, demand, demand_profile, cam_height,
-             tilt, pan, repeat_frames, drop_frames, jitter_ms, crf, png_every, quiet) -> None:
+             tilt, pan, focal, repeat_frames, drop_frames, jitter_ms, crf, png_every, quiet) -> None:
     from tools.simulate.scenario import render_scenario
 
     profile = None
@@ -62,7 +64,7 @@ def simulate(preset, seed, seconds, out, width, height, fps, lanes, receding_lan
             raise click.BadParameter("times must increase and factors be >= 0", param_hint="--demand-profile")
 
     overrides = dict(lanes_approaching=lanes, lanes_receding=receding_lanes, demand_vph=demand,
-                     cam_height_m=cam_height, cam_tilt_deg=tilt, cam_pan_deg=pan, repeat_frames=repeat_frames,
+                     cam_height_m=cam_height, cam_tilt_deg=tilt, cam_pan_deg=pan, focal_scale=focal, repeat_frames=repeat_frames,
                      drop_prob=drop_frames, jitter_ms=jitter_ms, demand_profile=profile, video_crf=crf)
     t0 = time.perf_counter()
     try:

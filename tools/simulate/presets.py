@@ -44,7 +44,7 @@ class SceneParams:
     shake_px: float = 0.0  # wind-shake standard deviation
     drift_px_per_min: float = 0.0
     motion_blur: bool = True
-    defocus: float = 0.0  # Gaussian sigma (px)
+    defocus: float = 0.6  # Gaussian sigma (px): slight lens softness; real cameras are never pixel-sharp
     noise_sigma: float = 2.5
     auto_gain: bool = True
     jpeg_quality: int = 0  # >0: JPEG-compress every frame at this quality (stream only; video is mp4 anyway)
@@ -87,7 +87,7 @@ _OVERRIDES: dict[str, dict] = {
     ),
     "long-shadows": dict(lanes_approaching=3, sun_elevation_deg=12.0, sun_azimuth_deg=260.0, demand_vph=1000.0),
     "night": dict(night=True, shadows=False, noise_sigma=6.0, lanes_approaching=2, lanes_receding=1),
-    "rain": dict(rain=True, overcast=True, shadows=False, noise_sigma=4.0, defocus=0.8),
+    "rain": dict(rain=True, overcast=True, shadows=False, noise_sigma=4.0, defocus=1.0),
     "wind-shake": dict(shake_px=2.5, drift_px_per_min=20.0, lanes_approaching=3),
     "trucks-and-buses": dict(
         lanes_approaching=3,
