@@ -226,8 +226,9 @@ class Grouper:
                 tr.start_y = rep_y
             if sign < 0:
                 front, rear = rep_y, rep_y + length
-            else:
-                front, rear = rep_y + length, rep_y
+            else:  # the front of a receding vehicle is its far end: keep it monotone too
+                front = rep_y + length if tr.last is None else max(rep_y + length, tr.last.y_front)
+                rear = rep_y
             # velocity: median over the settled features near the representative one (the lowest part
             # of the vehicle; higher features move faster in the road projection)
             near = members[(np.abs(ys - s[rep, 1]) < NEAR_REP_M) & (age[members] >= 3)]
@@ -277,7 +278,9 @@ class Grouper:
             dy = o.vy * (st.t - o.t)
             lo, hi = _extent(o)
             lo, hi = lo + dy, hi + dy
-            if lo <= y <= hi and x_lo - FRAGMENT_X_MARGIN_NO_CAMERA_M <= st.x <= x_hi + FRAGMENT_X_MARGIN_NO_CAMERA_M:
+            # an elevated leftover (moving faster in projection) may lie across the lane; a level one may not
+            m = FRAGMENT_X_MARGIN_NO_CAMERA_M if st.vy / o.vy > 1.05 else FRAGMENT_X_MARGIN_M
+            if lo <= y <= hi and x_lo - m <= st.x <= x_hi + m:
                 return GHOST
         for vid, other in self.tracks.items():
             o = other.last

@@ -10,7 +10,7 @@ from appliance.config import SiteConfig
 from appliance.edie import EdieAccumulator, edie_qkv
 from appliance.lanes import LaneHistory, LaneMap
 from appliance.loops import VirtualLoop, length_class
-from appliance.periods import PERIOD_TOLERANCE_S, PeriodClock, period_start
+from appliance.periods import PERIOD_TOLERANCE_S, PeriodClock
 from appliance.types import ChannelState, LaneAggregate, LoopEvent, VehicleRecord, VehicleState
 
 LOST_AFTER_S = 2.0  # a vehicle not seen for this long (and never finished) is forgotten

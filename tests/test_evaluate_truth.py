@@ -77,3 +77,12 @@ def test_evaluate_needs_matching_periods(scene, tmp_path):
     r = subprocess.run([sys.executable, "-m", "tools.cli", "evaluate", "--truth", str(scene.truth_dir), "--results",
                         str(out)], capture_output=True, text=True, timeout=120)
     assert r.returncode != 0 and "no period matches" in r.stderr
+
+
+def test_replay_truth_tracks_cli(scene, tmp_path):
+    out = tmp_path / "perfect.sqlite"
+    r = subprocess.run([sys.executable, "-m", "tools.cli", "replay", "--truth-tracks", str(scene.truth_dir),
+                        "--config", str(scene.site), "--out", str(out)], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    cmp = compare_with_truth(load_truth(scene.truth_dir), load_results(out))
+    assert all(t == res for t, res in cmp.lane_counts.values())

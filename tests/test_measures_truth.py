@@ -3,7 +3,6 @@ the continuous trajectories): per-lane counts, Edie q/k/v, speeds, headways, occ
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 
 from appliance.config import parse_site
@@ -43,14 +42,12 @@ def run_scene(preset: str, seed: int, seconds: float, period_s: float = 60.0):
         upd = tm.step(t, START_WALL + t, states)
         periods += upd.periods
         events += upd.loop_events
-        tm.crossing_log = getattr(tm, "crossing_log", []) + upd.crossings
     periods += tm.flush(START_WALL + float(sc.traffic.t))
     # presences still open at the end (the truth only counts actuations that ended), by lane
     end = START_WALL + float(sc.traffic.t)
     open_s = {}
     for lane, lp in tm.occupancy_loop.items():
-        open_s[lane] = [(p.wall_on, end) for p in lp.active.values()]
-    run_scene.last = tm
+        open_s[lane] = [(lp.act["wall_on"], end)] if lp.act is not None else []
     return sc, periods, events, open_s
 
 

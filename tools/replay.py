@@ -278,7 +278,10 @@ def source_video(site: SiteConfig) -> str:
 @click.option("--snapshots", type=click.Path(file_okay=False), default=None, help="Write annotated PNGs here.")
 @click.option("--start", default=None, help="Wall time of the first frame, ISO 8601 (default 2026-01-01T00:00:00Z).")
 @click.option("--max-frames", type=int, default=None, help="Stop after this many frames.")
-def replay(video, config_path, fps, out, vehicles, annotate, snapshots, start, max_frames) -> None:
+@click.option("--truth-tracks", type=click.Path(file_okay=False), default=None,
+              help="Instead of a video: the simulator truth DIR's exact trajectories (a perfect tracker), "
+                   "to separate measurement from tracking errors.")
+def replay(video, config_path, fps, out, vehicles, annotate, snapshots, start, max_frames, truth_tracks) -> None:
     """Run the pipeline on VIDEO (a file, or an image pattern like input/in%06d.jpg) as fast as it can.
 
     Without VIDEO the config's own file source is used (e.g. a site made by site-from-counts).
@@ -289,15 +292,22 @@ def replay(video, config_path, fps, out, vehicles, annotate, snapshots, start, m
         site = load_site(config_path)
     except ConfigError as e:
         raise click.ClickException(f"config: {e}") from None
-    if video is None:
-        video = source_video(site)
-    if fps is not None and fps <= 0:
-        raise click.BadParameter("must be positive", param_hint="--fps")
-    try:
-        res = replay_video(video, site, fps=fps, start_wall=parse_start(start), annotate=annotate,
-                           snapshots=snapshots, progress=True, max_frames=max_frames)
-    except ReplayError as e:
-        raise click.ClickException(str(e)) from None
+    if truth_tracks:
+        if not (Path(truth_tracks) / "vehicles.csv").exists():
+            raise click.BadParameter(f"{truth_tracks} has no vehicles.csv", param_hint="--truth-tracks")
+        t0 = time.perf_counter()
+        res = replay_truth_tracks(truth_tracks, site, parse_start(start) if start else None)
+        res.seconds = time.perf_counter() - t0
+    else:
+        if video is None:
+            video = source_video(site)
+        if fps is not None and fps <= 0:
+            raise click.BadParameter("must be positive", param_hint="--fps")
+        try:
+            res = replay_video(video, site, fps=fps, start_wall=parse_start(start), annotate=annotate,
+                               snapshots=snapshots, progress=True, max_frames=max_frames)
+        except ReplayError as e:
+            raise click.ClickException(str(e)) from None
     if res.truncated:
         click.echo(f"warning: {res.truncated}; results cover the frames read", err=True)
     click.echo(format_table(res.periods))

@@ -189,13 +189,19 @@ def render_background(cam: Camera, layout: RoadLayout, rng: np.random.Generator,
             lx = layout.x_min + 1.6
             lit += 1.1 * np.exp(-((Y[:, None] - ly) ** 2) / (2 * 7.0**2) - ((X[None, :] - lx) ** 2) / (2 * 6.0**2))
         tex = tex * np.minimum(lit, 1.2)
-    A = np.array([[1 / SX, 0, MAP_X[0]], [0, 1 / SY, MAP_Y[0]], [0, 0, 1.0]])
-    M = cam2.road_to_image_matrix() @ A
-    big = cv2.warpPerspective(tex, M, (cam2.width, cam2.height_px), flags=cv2.INTER_LINEAR,
-                              borderMode=cv2.BORDER_REPLICATE)
-    # poor man's mip-mapping: far rows come from a texture blurred along the road, against aliasing streaks
-    soft = cv2.warpPerspective(cv2.GaussianBlur(tex, (0, 0), sigmaX=1.5, sigmaY=5.0), M,
-                               (cam2.width, cam2.height_px), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    stex = cv2.GaussianBlur(tex, (0, 0), sigmaX=1.5, sigmaY=5.0)
+    if layout.curved:  # the map is drawn in the straight frame: look each pixel up at X - centre_x(Y)
+        mx, my = _curved_map_coords(cam2, layout)
+        big = cv2.remap(tex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        soft = cv2.remap(stex, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    else:
+        A = np.array([[1 / SX, 0, MAP_X[0]], [0, 1 / SY, MAP_Y[0]], [0, 0, 1.0]])
+        M = cam2.road_to_image_matrix() @ A
+        big = cv2.warpPerspective(tex, M, (cam2.width, cam2.height_px), flags=cv2.INTER_LINEAR,
+                                  borderMode=cv2.BORDER_REPLICATE)
+        # poor man's mip-mapping: far rows come from a texture blurred along the road, against aliasing streaks
+        soft = cv2.warpPerspective(stex, M, (cam2.width, cam2.height_px), flags=cv2.INTER_LINEAR,
+                                   borderMode=cv2.BORDER_REPLICATE)
     centre_col = np.full(cam2.height_px, cam2.width / 2.0)
     road_y = cam2.image_to_road(np.column_stack([centre_col, np.arange(cam2.height_px, dtype=np.float64)]))[:, 1]
     road_y = np.where(np.isfinite(road_y) & (road_y > 0), road_y, 1e6)
@@ -221,6 +227,9 @@ def render_background(cam: Camera, layout: RoadLayout, rng: np.random.Generator,
     for name, b in _build_objects(layout, sun, ambient, night, exposure):
         quads = np.array(b.quads)
         parts = np.array(b.parts)
+        if layout.curved:  # objects are laid out beside the straight road: move them with the bend
+            quads[..., 0] += layout.centre_x(quads[..., 1])
+            parts[..., 0] += layout.centre_x(parts[..., 1])
         if shadows:
             for part in parts:
                 sp = cam.road_to_image(shadow_points(part, sun))
@@ -248,6 +257,20 @@ def render_background(cam: Camera, layout: RoadLayout, rng: np.random.Generator,
     if shadows:
         cv2.copyTo(bg_shadow, shadow_mask, bg_u8)
     return bg_u8, bg_shadow, objects
+
+
+def _curved_map_coords(cam: Camera, layout: RoadLayout) -> tuple[np.ndarray, np.ndarray]:
+    """Texture-map column/row (float32) of every image pixel's road point, for a curved road."""
+    u, v = np.meshgrid(np.arange(cam.width, dtype=np.float64), np.arange(cam.height_px, dtype=np.float64))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        road = cam.image_to_road(np.column_stack([u.ravel(), v.ravel()]))
+    x, y = road[:, 0], road[:, 1]
+    bad = ~np.isfinite(y) | (y < MAP_Y[0]) | (y > 1e4)  # at or above the horizon: sky is drawn over it
+    y = np.where(bad, MAP_Y[1], y)
+    x = np.where(bad, 0.0, x) - layout.centre_x(y)
+    mx = ((x - MAP_X[0]) * SX).reshape(u.shape).astype(np.float32)
+    my = ((y - MAP_Y[0]) * SY).reshape(u.shape).astype(np.float32)
+    return mx, my
 
 
 def _sign_fiducials(panel: np.ndarray) -> list[np.ndarray]:

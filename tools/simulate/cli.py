@@ -34,6 +34,8 @@ def _preset_help() -> str:
 @click.option("--fps", type=click.FloatRange(min=1, max=240), default=25.0, show_default=True)
 @click.option("--lanes", type=click.IntRange(1, 6), default=None, help="Approaching lanes (overrides the preset).")
 @click.option("--receding-lanes", type=click.IntRange(0, 5), default=None, help="Receding lanes.")
+@click.option("--curve-radius", type=float, default=None, metavar="METRES",
+              help="Bend the road: radius in m (+ right, - left, 0 straight; |R| >= 200).")
 @click.option("--demand", type=click.FloatRange(min=0), default=None, help="Demand per lane (veh/h).")
 @click.option("--demand-profile", default=None, metavar="T:F,...",
               help="Demand factor over time, piecewise linear, e.g. '0:0.5,600:1.5,1200:0.8'.")
@@ -49,8 +51,8 @@ def _preset_help() -> str:
 @click.option("--png-every", type=click.FloatRange(min=0), default=0.0, metavar="SECONDS",
               help="Also save a PNG frame every SECONDS to OUT/frames/ (0 = none).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
-def simulate(preset, seed, seconds, out, width, height, fps, lanes, receding_lanes, demand, demand_profile, cam_height,
-             tilt, pan, focal, repeat_frames, drop_frames, jitter_ms, crf, png_every, quiet) -> None:
+def simulate(preset, seed, seconds, out, width, height, fps, lanes, receding_lanes, curve_radius, demand, demand_profile,
+             cam_height, tilt, pan, focal, repeat_frames, drop_frames, jitter_ms, crf, png_every, quiet) -> None:
     from tools.simulate.scenario import render_scenario
 
     profile = None
@@ -63,8 +65,9 @@ def simulate(preset, seed, seconds, out, width, height, fps, lanes, receding_lan
         if any(b < 0 for _, b in profile) or [a for a, _ in profile] != sorted(a for a, _ in profile):
             raise click.BadParameter("times must increase and factors be >= 0", param_hint="--demand-profile")
 
-    overrides = dict(lanes_approaching=lanes, lanes_receding=receding_lanes, demand_vph=demand,
-                     cam_height_m=cam_height, cam_tilt_deg=tilt, cam_pan_deg=pan, focal_scale=focal, repeat_frames=repeat_frames,
+    overrides = dict(lanes_approaching=lanes, lanes_receding=receding_lanes, curve_radius_m=curve_radius,
+                     demand_vph=demand, cam_height_m=cam_height, cam_tilt_deg=tilt, cam_pan_deg=pan, focal_scale=focal,
+                     repeat_frames=repeat_frames,
                      drop_prob=drop_frames, jitter_ms=jitter_ms, demand_profile=profile, video_crf=crf)
     t0 = time.perf_counter()
     try:

@@ -6,6 +6,9 @@ import dataclasses
 from dataclasses import dataclass, field
 
 
+MIN_CURVE_RADIUS_M = 200.0  # tighter bends leave the view before the count region (and are not 'gentle')
+
+
 @dataclass
 class SceneParams:
     """Everything that defines a scene; a preset is a set of overrides of these defaults."""
@@ -14,6 +17,7 @@ class SceneParams:
     lanes_approaching: int = 2
     lanes_receding: int = 0
     lane_width_m: float = 3.5
+    curve_radius_m: float = 0.0  # 0 = straight; + bends right, - left; |R| >= MIN_CURVE_RADIUS_M (gentle)
     # traffic (per lane)
     demand_vph: float = 900.0
     demand_profile: list[list[float]] = field(default_factory=list)  # [[t_s, factor], ...] piecewise linear
@@ -69,6 +73,7 @@ PRESETS: dict[str, str] = {
     "two-directions": "2 approaching + 2 receding lanes, camera on a pole at the roadside.",
     "dusk": "Low light after sunset, headlights on, gain riding high.",
     "day-to-night": "3 lanes from sunny day to lamp-lit night over the first 4 minutes: gain, shadows, headlights.",
+    "curve": "3 lanes (2 approaching, 1 receding) on a gentle left-hand curve of 350 m radius, sun with shadows.",
     "defects": "free-flow footage at 15 fps padded to 30 fps, dropped frames and timestamp jitter.",
 }
 
@@ -98,6 +103,8 @@ _OVERRIDES: dict[str, dict] = {
     "two-directions": dict(lanes_approaching=2, lanes_receding=2, demand_vph=800.0, cam_offset_m=3.0),
     "dusk": dict(dusk=True, shadows=False, noise_sigma=4.5, lanes_receding=1),
     "day-to-night": dict(lanes_approaching=2, lanes_receding=1, day_to_night=[20.0, 240.0], noise_sigma=4.0),
+    "curve": dict(lanes_approaching=2, lanes_receding=1, curve_radius_m=-350.0, demand_vph=800.0,
+                  speed_limit_kmh=80.0),
     "defects": dict(repeat_frames=2, drop_prob=0.01, jitter_ms=4.0),
 }
 
@@ -115,6 +122,9 @@ def scene_params(preset: str, **overrides) -> SceneParams:
             setattr(p, k, v)
     if not 1 <= p.lanes_approaching + p.lanes_receding <= 6:
         raise ValueError("a scene needs 1 to 6 lanes in total")
+    if p.curve_radius_m != 0 and abs(p.curve_radius_m) < MIN_CURVE_RADIUS_M:
+        raise ValueError(f"curve radius {p.curve_radius_m} m is too tight: use 0 (straight) or |R| >= "
+                         f"{MIN_CURVE_RADIUS_M:g} m")
     if p.repeat_frames < 1:
         raise ValueError("repeat_frames must be >= 1")
     return p

@@ -43,18 +43,45 @@ class Lane:
 
 @dataclass(frozen=True)
 class RoadLayout:
+    """Lanes side by side; with radius_m != 0 the whole road bends: a lane's edge at lateral position x
+    (in the straight frame) lies at road X = x + centre_x(Y), so Y stays monotonic along every lane."""
+
     lanes: tuple[Lane, ...]
     lane_width: float
+    radius_m: float = 0.0  # 0 = straight; + bends to the right (X grows with Y), - to the left
+
+    @property
+    def curved(self) -> bool:
+        return self.radius_m != 0.0
+
+    def centre_x(self, y):
+        """Lateral shift of the road at along-road position Y: Y^2 / 2R, the parabola of a circle of radius R
+        tangent to the Y axis at Y = 0 (within 0.1 % of the circle's offset for Y < R / 20)."""
+        if not self.curved:
+            return np.zeros_like(np.asarray(y, dtype=np.float64))
+        y = np.asarray(y, dtype=np.float64)
+        return y * y / (2.0 * self.radius_m)
+
+    def slope(self, y):
+        """dX/dY of the road at Y (the tangent of the heading angle)."""
+        if not self.curved:
+            return np.zeros_like(np.asarray(y, dtype=np.float64))
+        return np.asarray(y, dtype=np.float64) / self.radius_m
+
+    def to_road(self, x, y) -> np.ndarray:
+        """(N, 2) road X/Y of lateral positions x (straight frame) at along-road positions y."""
+        x, y = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
+        return np.column_stack([(x + self.centre_x(y)).ravel(), y.ravel()])
 
     @classmethod
-    def make(cls, approaching: int, receding: int, lane_width: float = 3.5) -> "RoadLayout":
+    def make(cls, approaching: int, receding: int, lane_width: float = 3.5, radius_m: float = 0.0) -> "RoadLayout":
         n = approaching + receding
         x_left = -n * lane_width / 2.0
         lanes = tuple(
             Lane(k + 1, x_left + k * lane_width, x_left + (k + 1) * lane_width, -1 if k < approaching else +1)
             for k in range(n)
         )
-        return cls(lanes, lane_width)
+        return cls(lanes, lane_width, float(radius_m))
 
     @property
     def x_min(self) -> float:

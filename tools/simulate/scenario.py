@@ -166,5 +166,8 @@ def render_scenario(preset: str, seed: int, seconds: float, out_dir: Path, *, wi
         frames_file="truth/frames.csv",
         vehicles_spawned=int(scene.traffic.next_id - 1),
     )
+    if p.curve_radius_m:
+        meta["road"] = dict(curve_radius_m=p.curve_radius_m, centre_x="Y^2 / (2 R)",
+                            speeds="along Y (dY/dt), the frame of the counts, loops and Edie quantities")
     (truth_dir / "meta.json").write_text(json.dumps(meta, indent=1))
     return ScenarioOutput(video_path, site_path, truth_dir, meta)

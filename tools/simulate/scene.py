@@ -18,6 +18,7 @@ from tools.simulate.truth import START_WALL, StepState, TruthAccumulator, TruthL
 from tools.simulate.vehicles import build_shape
 
 LOOP_LENGTH_M = 1.8
+CURVE_STEP_M = 5.0  # vertex spacing of a curved lane's polygon: chord error Y-step^2 / 8R < 1 cm for R >= 300 m
 WARM_UP_S = 90.0
 FAR_DETAIL_M = 110.0
 NIGHT_EXPOSURE = 0.28
@@ -40,9 +41,10 @@ class Scene:
         p = self.p
         streams = np.random.SeedSequence(self.seed).spawn(4)
         self.rng_traffic, rng_bg, rng_cond, self.rng_shape = (np.random.default_rng(s) for s in streams)
-        self.layout = RoadLayout.make(p.lanes_approaching, p.lanes_receding, p.lane_width_m)
+        self.layout = RoadLayout.make(p.lanes_approaching, p.lanes_receding, p.lane_width_m, p.curve_radius_m)
         cam_x = self.layout.x_max + p.cam_offset_m
-        pan = p.cam_pan_deg if p.cam_pan_deg is not None else math.degrees(math.atan2(-cam_x, 60.0))
+        aim_x = float(self.layout.centre_x(60.0)) - cam_x
+        pan = p.cam_pan_deg if p.cam_pan_deg is not None else math.degrees(math.atan2(aim_x, 60.0))
         self.cam = Camera(width, height, p.focal_scale * width, p.cam_height_m, p.cam_tilt_deg, pan, cam_x)
         el, az = math.radians(p.sun_elevation_deg), math.radians(p.sun_azimuth_deg)
         self.sun = np.array([math.cos(el) * math.sin(az), math.cos(el) * math.cos(az), math.sin(el)])
@@ -105,9 +107,10 @@ class Scene:
             return (px[:, 0] >= m) & (px[:, 0] <= W - 1 - m) & (px[:, 1] >= m) & (px[:, 1] <= H - 1 - m)
 
         lanes, loops = [], []
-        for ln in self.layout.lanes:
-            a = cam.road_to_image(np.column_stack([np.full_like(ys, ln.x0), ys]))
-            b = cam.road_to_image(np.column_stack([np.full_like(ys, ln.x1), ys]))
+        lay = self.layout
+        for ln in lay.lanes:
+            a = cam.road_to_image(lay.to_road(ln.x0, ys))
+            b = cam.road_to_image(lay.to_road(ln.x1, ys))
             ok = inside(a) & inside(b)
             width_px = np.abs(b[:, 0] - a[:, 0])
             if not ok.any():
@@ -120,18 +123,23 @@ class Scene:
             r_hi = min(float(ys[wide[-1]]) if len(wide) else y_hi, y_lo + 100.0, y_hi)
             region = [round(y_lo + 0.5, 2), round(r_hi, 2)]
             count_y = round(region[0] + 0.3 * (region[1] - region[0]), 2)
-            lanes.append(dict(id=ln.id, dir=ln.direction, x0=ln.x0, x1=ln.x1,
-                              polygon=[[ln.x0, y_lo], [ln.x1, y_lo], [ln.x1, y_hi], [ln.x0, y_hi]],
+            if lay.curved:  # both edges sampled along the bend (every CURVE_STEP_M), up one side, down the other
+                yv = np.linspace(y_lo, y_hi, max(2, int(math.ceil((y_hi - y_lo) / CURVE_STEP_M)) + 1))
+                polygon = np.vstack([lay.to_road(ln.x0, yv)[::-1], lay.to_road(ln.x1, yv)]).tolist()
+            else:
+                polygon = [[ln.x0, y_lo], [ln.x1, y_lo], [ln.x1, y_hi], [ln.x0, y_hi]]
+            lanes.append(dict(id=ln.id, dir=ln.direction, x0=ln.x0, x1=ln.x1, polygon=polygon,
                               region=region, count_y=count_y))
             loops.append(dict(id=f"L{ln.id}", lane=ln.id, channel=ln.id,
                               y_m=round(count_y - LOOP_LENGTH_M / 2, 2), length_m=LOOP_LENGTH_M))
         # calibration: lane boundary points at three distances
-        y_near = max(g["polygon"][0][1] for g in lanes) + 1.0
-        y_far = min(g["polygon"][2][1] for g in lanes)
+        y_near = max(min(p[1] for p in g["polygon"]) for g in lanes) + 1.0
+        y_far = min(max(p[1] for p in g["polygon"]) for g in lanes)
         xs = sorted({self.layout.x_min, self.layout.x_max, self.layout.lanes[len(self.layout.lanes) // 2].x0})
         road, img = [], []
         for y in (y_near, 0.6 * y_near + 0.4 * y_far, y_far):
             for x in xs:
+                x = float(lay.to_road(x, y)[0, 0])
                 px = cam.road_to_image(np.array([[x, y]]))[0]
                 if inside(px[None])[0]:
                     road.append([round(float(x), 3), round(float(y), 3)])
@@ -177,8 +185,11 @@ class Scene:
         if len(tr.s):
             d = tr.dirs[tr.lane]
             y0 = tr.y_start[tr.lane]
+            yf0, yf1 = y0 + d * tr.s_prev, y0 + d * tr.s
             st = StepState(tr.id, lane_at_x(self.layout, tr.x), lane_at_x(self.layout, tr.x_prev), d,
-                           y0 + d * tr.s_prev, y0 + d * tr.s, tr.length, tr.cls)
+                           yf0, yf1, tr.length, tr.cls)
+            if self.layout.curved:  # the body lies along the tangent at its front: its Y extent is L cos(heading)
+                st.span, st.span_prev = tr.length * self._cos(yf1), tr.length * self._cos(yf0)
             self.truth.step(t0, tr.t, st)
         else:
             self.truth.step(t0, tr.t, StepState(*(np.zeros(0),) * 7, []))
@@ -197,23 +208,37 @@ class Scene:
         yf = tr.y_front()
         d = tr.dirs[tr.lane]
         lane_ids = lane_at_x(self.layout, tr.x)
-        yc = yf - d * tr.length / 2
+        curved = self.layout.curved
+        if curved:  # front centre on the bent lane, body along the tangent there
+            xw = tr.x + self.layout.centre_x(yf)
+            cs = self._cos(yf)
+            sn = self.layout.slope(yf) * cs
+            yc = yf - d * tr.length / 2 * cs
+        else:
+            xw, cs, sn = tr.x, None, None
+            yc = yf - d * tr.length / 2
         show = (yc > 2.0) & (yc < 300.0)
         idx = np.nonzero(show)[0]
-        offs = np.column_stack([tr.x, yf, np.zeros(n)])
+        offs = np.column_stack([xw, yf, np.zeros(n)])
         shapes = [tr.shapes[i] for i in idx]
         nq = np.array([len(sh.quads) for sh in shapes], dtype=np.int64)
         npt = np.array([len(sh.corners) for sh in shapes], dtype=np.int64)
         if len(idx):
-            allq = np.concatenate([sh.quads for sh in shapes]) + np.repeat(offs[idx], nq, axis=0)[:, None, :]
+            allq = np.concatenate([sh.quads for sh in shapes])
             alln = np.concatenate([sh.normals for sh in shapes])
             allv = np.concatenate([sh.values for sh in shapes])
-            corners = np.concatenate([sh.corners for sh in shapes]) + np.repeat(offs[idx], npt, axis=0)
+            corners = np.concatenate([sh.corners for sh in shapes])
+            if curved:
+                allq = _turn(allq, np.repeat(cs[idx], nq)[:, None], np.repeat(sn[idx], nq)[:, None])
+                alln = _turn(alln, np.repeat(cs[idx], nq), np.repeat(sn[idx], nq))
+                corners = _turn(corners, np.repeat(cs[idx], npt), np.repeat(sn[idx], npt))
+            allq = allq + np.repeat(offs[idx], nq, axis=0)[:, None, :]
+            corners = corners + np.repeat(offs[idx], npt, axis=0)
             qpx, qdep = cam.project(allq)
             facing = np.einsum("ij,ij->i", alln, allq.mean(axis=1) - cam.centre) < 0
             facing &= (qdep > 0.5).all(axis=1)
             # level of detail: far vehicles (a few pixels) are drawn without their face details
-            far = np.hypot(tr.x[idx] - cam.x_m, yc[idx]) > FAR_DETAIL_M
+            far = np.hypot(xw[idx] - cam.x_m, yc[idx]) > FAR_DETAIL_M
             if far.any():
                 decal = np.concatenate([sh.decal for sh in shapes])
                 facing &= ~(decal & np.repeat(far, nq))
@@ -240,6 +265,8 @@ class Scene:
                     spread = 2.0 * reach / 35.0
                     poly = np.array([[tr.x[i] - w, yf[i]], [tr.x[i] + w, yf[i]],
                                      [tr.x[i] + w + spread, y2], [tr.x[i] - w - spread, y2]])
+                    if curved:
+                        poly[:, 0] += self.layout.centre_x(poly[:, 1])
                     if (poly[:, 1] > 3.0).all():
                         cv2.fillConvexPoly(self._beam, np.round(cam.road_to_image(poly) * 16).astype(np.int32),
                                            level, cv2.LINE_8, 4)
@@ -253,7 +280,7 @@ class Scene:
                 if self.night_lights:
                     lamp = np.concatenate([sh.lamp for sh in shapes])
                     allv = np.where(lamp > 0, lamp, allv)
-        depth = np.hypot(tr.x[idx] - cam.x_m, yc[idx])
+        depth = np.hypot(xw[idx] - cam.x_m, yc[idx])
         objs = []
         if len(idx):
             starts = c_end - npt
@@ -298,7 +325,7 @@ class Scene:
         if batch:
             fill_quads(img, qpx, allv, np.concatenate(batch))
         if self.night_lights:
-            self._lights(img, idx, offs, d)
+            self._lights(img, idx, offs, d, cs, sn)
         dxy = self.conditions.offset(tr.t)
         out = self.conditions.apply(img, tr.t, dxy)
         if want_truth:
@@ -307,8 +334,8 @@ class Scene:
             bx0, bx1 = (vx0 + dxy[0]).tolist(), (vx1 + dxy[0]).tolist()
             by0, by1 = (vy0 + dxy[1]).tolist(), (vy1 + dxy[1]).tolist()
             cols = {name: arr[idx].tolist() for name, arr in (
-                ("id", tr.id), ("lane", lane_ids), ("x", tr.x), ("yf", yf), ("yc", yc), ("v", tr.v), ("a", tr.a),
-                ("len", tr.length), ("d", d))}
+                ("id", tr.id), ("lane", lane_ids), ("x", xw), ("yf", yf), ("yc", yc), ("v", tr.v), ("a", tr.a),
+                ("len", tr.length), ("d", d), ("span", tr.length * cs if curved else tr.length))}
             for k, hull in hulls.items():
                 x0, x1, y0, y1 = bx0[k], bx1[k], by0[k], by1[k]
                 if x1 < 0 or y1 < 0 or x0 > W - 1 or y0 > H - 1:
@@ -317,7 +344,7 @@ class Scene:
                 area = cv2.contourArea(h) + 0.5 * cv2.arcLength(h, True)
                 rows.append({
                     "vehicle_id": cols["id"][k], "class": tr.cls[idx[k]], "lane": cols["lane"][k], "x_m": cols["x"][k],
-                    "y_front_m": cols["yf"][k], "y_rear_m": cols["yf"][k] - cols["d"][k] * cols["len"][k],
+                    "y_front_m": cols["yf"][k], "y_rear_m": cols["yf"][k] - cols["d"][k] * cols["span"][k],
                     "y_centre_m": cols["yc"][k], "speed_mps": cols["v"][k], "accel_mps2": cols["a"][k],
                     "length_m": cols["len"][k], "bbox_x0": max(x0, 0.0), "bbox_y0": max(y0, 0.0),
                     "bbox_x1": min(x1, W - 1.0), "bbox_y1": min(y1, H - 1.0),
@@ -361,7 +388,13 @@ class Scene:
         patch = o.patch if self.veh_scale == 1.0 else cv2.convertScaleAbs(o.patch, alpha=self.veh_scale)
         cv2.copyTo(patch, o.mask, roi)
 
-    def _lights(self, img: np.ndarray, idx: np.ndarray, offs: np.ndarray, d: np.ndarray) -> None:
+    def _cos(self, y: np.ndarray) -> np.ndarray:
+        """cos(heading) of a vehicle whose front is at Y on the curved road."""
+        s = self.layout.slope(y)
+        return 1.0 / np.sqrt(1.0 + s * s)
+
+    def _lights(self, img: np.ndarray, idx: np.ndarray, offs: np.ndarray, d: np.ndarray,
+                cs: np.ndarray | None = None, sn: np.ndarray | None = None) -> None:
         tr, cam = self.traffic, self.cam
         pts, sizes = [], []
         for i in idx:
@@ -369,7 +402,8 @@ class Scene:
             if not len(sh.lights):
                 continue
             facing = sh.light_front if d[i] < 0 else ~sh.light_front  # lights on the face towards the camera
-            L = sh.lights[facing] + offs[i]
+            L = sh.lights[facing] if cs is None else _turn(sh.lights[facing], cs[i], sn[i])
+            L = L + offs[i]
             px, dep = cam.project(L)
             good = dep > 1.0
             pts.extend(px[good])
@@ -377,3 +411,11 @@ class Scene:
             sizes.extend(np.clip(base * 25.0 / dep[good], 2, 11))
         if pts:
             self.conditions.glare(img, np.array(pts), np.array(sizes))
+
+
+def _turn(p: np.ndarray, c, s) -> np.ndarray:
+    """Points/vectors (..., 3) of the straight frame turned to a heading with cos c, sin s (+ towards +X)."""
+    out = p.copy()
+    out[..., 0] = p[..., 0] * c + p[..., 1] * s
+    out[..., 1] = p[..., 1] * c - p[..., 0] * s
+    return out

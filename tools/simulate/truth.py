@@ -53,6 +53,9 @@ class StepState:
     yf1: np.ndarray
     length: np.ndarray
     classes: list[str]
+    # Y extent of the body at the end / start of the step when it differs from length (a vehicle on a curve)
+    span: np.ndarray | None = None
+    span_prev: np.ndarray | None = None
 
 
 def length_class(length: float, bounds=(2.1, 6.1, 13.1), names=("motorcycle", "small", "medium", "large")) -> str:
@@ -121,11 +124,13 @@ class TruthAccumulator:
                     acc[0] += float(np.sum(frac * np.abs(d)))
                     acc[1] += float(np.sum(frac) * dt)
         # loops: presence of the vehicle body [lo, hi] over the loop span, in the loop's lane
+        span1 = st.length if st.span is None else st.span
+        span0 = span1 if st.span_prev is None else st.span_prev
         for li, lp in enumerate(self.loops):
             ya, yb = lp.y0, lp.y0 + lp.length
-            lo0 = np.where(st.direction < 0, st.yf0, st.yf0 - st.length)
-            lo1 = np.where(st.direction < 0, st.yf1, st.yf1 - st.length)
-            hi0, hi1 = lo0 + st.length, lo1 + st.length
+            lo0 = np.where(st.direction < 0, st.yf0, st.yf0 - span0)
+            lo1 = np.where(st.direction < 0, st.yf1, st.yf1 - span1)
+            hi0, hi1 = lo0 + span0, lo1 + span1
             on0 = (st.lanes_prev == lp.lane) & (lo0 < yb) & (hi0 > ya)
             on1 = (st.lanes == lp.lane) & (lo1 < yb) & (hi1 > ya)
             for i in np.nonzero(on1 & ~on0)[0]:
@@ -148,7 +153,7 @@ class TruthAccumulator:
                     tau = 0.0
                 t_off = t0 + tau * dt
                 dur = t_off - t_on
-                sp = (lp.length + st.length[i]) / dur * 3.6 if dur > 0 else None
+                sp = (lp.length + span1[i]) / dur * 3.6 if dur > 0 else None
                 self.loop_events.append(dict(
                     loop_id=lp.id, channel=lp.channel, lane=lp.lane, vehicle_id=int(st.ids[i]),
                     t_on=round(t_on, 6), t_off=round(t_off, 6),
