@@ -19,18 +19,21 @@ UNSEEN, LINKED, APART, MERGED = 0, 1, 2, 3  # MERGED: a fragment joined to its v
 NEAR_REP_M = 3.0  # features this close along the road to the representative one give the velocity
 MIN_TRAVEL_M = 1.0  # a group is reported once it has moved this far (static texture never does)
 MIN_SPEED_MPS = 1.5  # ... and is moving at least this fast (vehicles are found while they move)
-FRAGMENT_X_MARGIN_M = 0.5
-MIN_LENGTH_M = 4.5  # the shortest car: a group this close behind a vehicle's front is part of it
-GHOST = -1  # host id meaning "a vehicle finalised in the last GHOST_S seconds"
+# A new group is a fragment of a known vehicle (its elevated top or its rear, seen as a separate group)
+# when, after undoing the height magnification, its near end lies in that vehicle's footprint:
+FRAGMENT_X_MARGIN_M = 0.5  # lateral slack around the footprint
+FRAGMENT_X_MARGIN_NO_CAMERA_M = 2.0  # ... for elevated parts when the camera position is unknown
+MIN_LENGTH_M = 4.5  # the footprint reaches at least this far behind the vehicle's front (shortest car)
+GHOST = -1  # host id meaning "a vehicle finalised in the last GHOST_S seconds" (its leftovers)
 GHOST_S = 2.0
-FRAGMENT_X_MARGIN_NO_CAMERA_M = 2.0  # a new group within a known vehicle's extent (plus this) is part of it
 
 
 @njit(cache=True)
 def pair_update(live, s, lane, state, rng, y0, conn_x, conn_y, seg_x, seg_y, seg_rel):
     """Update the pair graph over the live slots. Only features born in the same lane may link (side by
-    side vehicles stay apart); a tall vehicle's top seen in the next lane is joined later as a fragment. rng[i, j] = (min dx, max dx, min dy, max dy) of the pair
-    distance since linking; y0[i, j] = Y of the lower slot at linking (for the travelled distance)."""
+    side vehicles stay apart); a tall vehicle's top seen in the next lane is joined later as a fragment.
+    rng[i, j] = (min dx, max dx, min dy, max dy) of the pair distance since linking; y0[i, j] = Y of the
+    lower slot at linking (for the travelled distance)."""
     n = live.shape[0]
     for a in range(n):
         i = live[a]

@@ -133,6 +133,7 @@ def test_sigkill_restart_keeps_every_period_exactly_once(tmp_path, shared_data) 
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(3600)
 def test_sigkill_many_times_on_the_whole_clip(tmp_path, shared_data) -> None:
     seed = random.randrange(1 << 30)
     # kills within a sixth of a clean run's processing time on average: many land mid-clip

@@ -57,6 +57,7 @@ def test_memory_flat_over_a_short_run(tmp_path, port) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(3600)
 def test_memory_flat_over_thirty_simulated_minutes(tmp_path, port) -> None:
     s = run_and_sample(tmp_path, port, sim_minutes=30, samples=12)
     print("simulated min, RSS MB:", json.dumps([(round(m, 1), round(r, 1)) for m, r in s]))

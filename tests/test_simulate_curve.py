@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import json
 import math
+import subprocess
+import sys
 import tomllib
 
 import numpy as np
 import pytest
 
-from appliance.config import parse_site
+from appliance.config import load_site, parse_site
 from appliance.geometry import polygon_contains
 from tools.simulate.scene import Scene
 from tools.simulate.stream import site_toml
@@ -258,3 +261,27 @@ def test_huge_radius_gives_the_straight_scene() -> None:
 def test_too_tight_a_curve_is_refused() -> None:
     with pytest.raises(ValueError, match="too tight"):
         Scene("free-flow", 1, curve_radius_m=80.0)
+
+
+@pytest.mark.parametrize("overrides", [dict(night=True, shadows=False), dict(rain=True, overcast=True, shadows=False)])
+def test_curve_renders_at_night_and_in_rain(overrides: dict) -> None:
+    sc = Scene("curve", 3, **overrides)
+    for _ in range(3):
+        sc.step(DT)
+    img, rows = sc.render()
+    assert rows and img.shape == (480, 640)
+    assert all(r["bbox_x1"] > r["bbox_x0"] for r in rows)
+
+
+def test_cli_curve_radius_writes_a_loadable_site(tmp_path) -> None:
+    out = tmp_path / "bend"
+    r = subprocess.run([sys.executable, "-m", "tools.cli", "simulate", "--preset", "free-flow", "--curve-radius", "500",
+                        "--seconds", "1", "--out", str(out), "--quiet"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    cfg = load_site(out / "site.toml")
+    poly = np.asarray(cfg.lanes[0].polygon_m)
+    assert len(poly) >= 20 and poly[:, 0].max() - poly[:, 0].min() > 5.0  # bends right by metres
+    assert json.loads((out / "truth" / "meta.json").read_text())["road"]["curve_radius_m"] == 500.0
+    bad = subprocess.run([sys.executable, "-m", "tools.cli", "simulate", "--curve-radius", "50", "--seconds", "1",
+                          "--out", str(tmp_path / "bad"), "--quiet"], capture_output=True, text=True, timeout=300)
+    assert bad.returncode != 0 and "too tight" in bad.stderr

@@ -51,8 +51,8 @@ def _preset_help() -> str:
 @click.option("--png-every", type=click.FloatRange(min=0), default=0.0, metavar="SECONDS",
               help="Also save a PNG frame every SECONDS to OUT/frames/ (0 = none).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
-def simulate(preset, seed, seconds, out, width, height, fps, lanes, receding_lanes, curve_radius, demand, demand_profile,
-             cam_height, tilt, pan, focal, repeat_frames, drop_frames, jitter_ms, crf, png_every, quiet) -> None:
+def simulate(preset, seed, seconds, out, width, height, fps, lanes, receding_lanes, curve_radius, demand,
+             demand_profile, cam_height, tilt, pan, focal, repeat_frames, drop_frames, jitter_ms, crf, png_every, quiet) -> None:
     from tools.simulate.scenario import render_scenario
 
     profile = None

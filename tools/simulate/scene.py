@@ -18,7 +18,7 @@ from tools.simulate.truth import START_WALL, StepState, TruthAccumulator, TruthL
 from tools.simulate.vehicles import build_shape
 
 LOOP_LENGTH_M = 1.8
-CURVE_STEP_M = 5.0  # vertex spacing of a curved lane's polygon: chord error Y-step^2 / 8R < 1 cm for R >= 300 m
+CURVE_STEP_M = 5.0  # vertex spacing of a curved lane polygon: chord error step^2 / 8R < 1.6 cm for |R| >= 200 m
 WARM_UP_S = 90.0
 FAR_DETAIL_M = 110.0
 NIGHT_EXPOSURE = 0.28
