@@ -6,16 +6,16 @@ from __future__ import annotations
 
 import logging
 import os
-import pickle
 import queue
 import threading
 import time
-import zlib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Protocol
 
+from appliance import checkpoint
 from appliance.config import ConfigError, SiteConfig, load_site
+from appliance.frame_feed import FrameFeed
 from appliance.health import HealthMonitor
 from appliance.store import Store, is_disk_full, period_from_row
 from appliance.types import (ChannelState, DetectorSnapshot, Frame, FrameSource, HealthFault, LaneAggregate,
@@ -102,7 +102,6 @@ class Service:
         self.health = HealthMonitor(site.health)
         self.started_mono = time.monotonic()
         self.frames = 0
-        self.dropped = 0
         self.fps = 0.0
         self.period_seq = 0
         self.last_period: list[LaneAggregate] = []
@@ -110,17 +109,12 @@ class Service:
         self.last_snapshot: DetectorSnapshot | None = None
         self.last_frame: Frame | None = None
         self.tracked = 0
-        self.eos = False
         self._stop = threading.Event()
         self._reload_flag = threading.Event()
         self._reload_requests: queue.Queue = queue.Queue()
         self._forced: dict[int, float] = {}  # channel -> monotonic time the forced call ends
         self._lock = threading.RLock()  # pipeline (overlay from the status thread) and snapshot
-        self._frames_q: queue.Queue[Frame | None] = queue.Queue(maxsize=8)
-        self._latest: Frame | None = None
-        self._latest_cv = threading.Condition()
-        self._reader: threading.Thread | None = None
-        self._reader_stop = threading.Event()
+        self.feed: FrameFeed | None = None
         self._pending_periods: list[LaneAggregate] = []
         self._pending_events: list[LoopEvent] = []
         self._pending_vehicles: list[VehicleRecord] = []
@@ -130,7 +124,7 @@ class Service:
         self._last_prune = time.monotonic() - PRUNE_EVERY_S + 60.0  # first pruning a minute after start
         self._last_frame_mono = time.monotonic()
         self._fps_window: list[float] = []
-        self._load = [time.monotonic(), 0, 0]  # window start, frames, dropped
+        self._load = [time.monotonic(), 0]  # window start, frames
         self._last_status = 0.0
         self._last_watchdog = 0.0
         self.lossless = False
@@ -289,27 +283,17 @@ class Service:
             log.warning("saved period state not usable (%s); starting a fresh period", e)
 
     def _checkpoint_key(self) -> list:
-        return [_code_fingerprint(), self.site.source.url, self._lanes_key(), self.site.raw.get("tracking"),
-                self.site.raw.get("fiducials")]
+        return [self.site.source.url, self._lanes_key(), self.site.raw.get("tracking"), self.site.raw.get("fiducials")]
 
     def _save_checkpoint(self, frame: Frame) -> None:
         """Lossless (file) sources: the whole tracker and measures state at a period boundary,
         so a restart after a crash continues exactly where this frame left off."""
-        blob = zlib.compress(pickle.dumps({"key": self._checkpoint_key(), "seq": frame.seq, "frames": self.frames,
-                                           "pipeline": self.pipeline, "measures": self.measures}, protocol=5), 1)
-        self.store.save_blob("checkpoint", blob)
+        self.store.save_blob("checkpoint", checkpoint.pack(self._checkpoint_key(), frame.seq, self.frames,
+                                                           self.pipeline, self.measures))
 
     def _load_checkpoint(self) -> None:
-        blob = self.store.load_blob("checkpoint")
-        if blob is None:
-            return
-        try:
-            ck = pickle.loads(zlib.decompress(blob))
-        except Exception as e:  # noqa: BLE001 - a checkpoint from another version: start over
-            log.warning("resume checkpoint not usable (%s); processing from the start", e)
-            return
-        if ck.get("key") != self._checkpoint_key():
-            log.info("resume checkpoint is for another source or site; processing from the start")
+        ck = checkpoint.unpack(self.store.load_blob("checkpoint"), self._checkpoint_key())
+        if ck is None:
             return
         self.pipeline, self.measures = ck["pipeline"], ck["measures"]
         self._resumed_from_checkpoint = True
@@ -321,19 +305,18 @@ class Service:
         return [self.site.raw.get(k) for k in ("lanes", "loops", "measures", "calibration")]
 
     def _start_reader(self) -> None:
-        self._reader_stop.clear()
-        self.eos = False
-        self._reader = threading.Thread(target=self._read_frames, name="frame-reader", daemon=True)
-        self._reader.start()
+        self.feed = FrameFeed(self.source, self.lossless, self._skip_until)
+        self.feed.start()
 
     def _stop_reader(self) -> None:
-        self._reader_stop.set()
-        if self.source is not None:
+        if self.feed is not None:
+            self.feed.stop()
+        elif self.source is not None:
             self.source.close()
-        if self._reader is not None:
-            self._reader.join(timeout=10)
-        self._frames_q = queue.Queue(maxsize=8)
-        self._latest = None
+
+    @property
+    def dropped(self) -> int:
+        return self.feed.dropped if self.feed is not None else 0
 
     def shutdown(self) -> None:
         """Clean stop: the partial period is written, state saved, outputs stopped."""
@@ -356,60 +339,6 @@ class Service:
             self.store = None
         log.info("stopped after %d frames (%d dropped)", self.frames, self.dropped)
 
-    # ---------------------------------------------------------------- frame reader thread
-
-    def _read_frames(self) -> None:
-        src = self.source
-        while not self._reader_stop.is_set():
-            try:
-                frame = src.read()
-            except Exception:  # noqa: BLE001 - a driver fault must not kill the service
-                log.exception("source read failed")
-                frame = None
-                time.sleep(0.5)
-                if getattr(src, "live", True):
-                    continue
-            if frame is None:
-                if getattr(src, "live", False) and not self._reader_stop.is_set():
-                    continue
-                self.eos = True
-                with self._latest_cv:
-                    self._latest_cv.notify_all()
-                return
-            if frame.seq <= self._skip_until:
-                continue
-            if self.lossless:
-                while not self._reader_stop.is_set():
-                    try:
-                        self._frames_q.put(frame, timeout=0.2)
-                        break
-                    except queue.Full:
-                        continue
-            else:
-                with self._latest_cv:
-                    if self._latest is not None:
-                        self.dropped += 1
-                        self._load[2] += 1
-                    self._latest = frame
-                    self._latest_cv.notify_all()
-
-    def _next_frame(self, timeout: float) -> Frame | None:
-        if self.lossless:
-            try:
-                return self._frames_q.get(timeout=timeout)
-            except queue.Empty:
-                return None
-        with self._latest_cv:
-            if self._latest is None and not self.eos:
-                self._latest_cv.wait(timeout)
-            frame, self._latest = self._latest, None
-            return frame
-
-    def _source_done(self) -> bool:
-        if not self.eos:
-            return False
-        return self._frames_q.empty() if self.lossless else self._latest is None
-
     # ---------------------------------------------------------------- the loop
 
     def run(self, max_seconds: float | None = None) -> None:
@@ -421,9 +350,9 @@ class Service:
                 if deadline is not None and time.monotonic() >= deadline:
                     break
                 self._handle_reloads()
-                frame = self._next_frame(IDLE_PUBLISH_S)
+                frame = self.feed.next(IDLE_PUBLISH_S)
                 if frame is None:
-                    if self._source_done():
+                    if self.feed.done:
                         log.info("end of source")
                         break
                     self._idle()
@@ -472,8 +401,9 @@ class Service:
         h.observe_tracker(frame.t, frame.wall, getattr(self.pipeline, "stats", {}) or {})
         h.observe_channels(frame.t, frame.wall, channels, upd.loop_events)
         if now - self._load[0] >= LOAD_WINDOW_S:
-            h.observe_load(frame.t, frame.wall, self._load[1], self._load[2])
-            self._load = [now, 0, 0]
+            h.observe_load(frame.t, frame.wall, self._load[1], self.feed.window_dropped)
+            self._load = [now, 0]
+            self.feed.window_dropped = 0
         self._pending_events.extend(upd.loop_events)
         self._pending_vehicles.extend(upd.vehicles)
         if upd.periods:
@@ -718,19 +648,3 @@ class Service:
             self._start_outputs()
         log.info("config reloaded from %s (period state %s)", new.path, "kept" if keep_measures else "restarted")
 
-
-_FINGERPRINT: str | None = None
-
-
-def _code_fingerprint() -> str:
-    """Identifies the code whose objects a checkpoint pickles (a checkpoint from other code is not resumed)."""
-    global _FINGERPRINT
-    if _FINGERPRINT is None:
-        import hashlib
-
-        h = hashlib.sha1()
-        for f in sorted(Path(__file__).parent.glob("*.py")):
-            h.update(f.name.encode())
-            h.update(f.read_bytes())
-        _FINGERPRINT = h.hexdigest()
-    return _FINGERPRINT

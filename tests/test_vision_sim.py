@@ -117,7 +117,8 @@ LANE_TOL = {"long-shadows": 0.5, "defects": 0.5}
 @pytest.mark.parametrize("preset", SLOW_PRESETS)
 def test_preset_counts_per_lane(tmp_path, preset):
     d = render(preset, 2, 40.0, tmp_path)
-    check_counts(d, lane_tol=LANE_TOL.get(preset, 0.35), total_tol=0.3)
+    tol = LANE_TOL.get(preset, 0.35)
+    check_counts(d, lane_tol=tol, total_tol=tol)
 
 
 def _cdnet_site(counts: dict) -> SiteConfig:
