@@ -17,6 +17,7 @@ from appliance.zones import SiteZones
 
 UNSEEN, LINKED, APART, MERGED = 0, 1, 2, 3  # MERGED: a fragment joined to its vehicle for good
 NEAR_REP_M = 3.0  # features this close along the road to the representative one give the velocity
+MAX_LEAD_M = 1.5  # how far the reported near end may run ahead of the lowest feature
 MIN_TRAVEL_M = 1.0  # a group is reported once it has moved this far (static texture never does)
 MIN_SPEED_MPS = 1.5  # ... and is moving at least this fast (vehicles are found while they move)
 # A new group is a fragment of a known vehicle (its elevated top or its rear, seen as a separate group)
@@ -221,10 +222,18 @@ class Grouper:
             length = float(ys.max() - ys.min())
             rep_y = float(s[rep, 1])
             # The representative point is the near end: the front of an approaching vehicle, the rear of a
-            # receding one. It never moves backwards (a new lowest feature may move it forwards).
+            # receding one. When the lowest feature is lost the next one is further back: the near end then
+            # carries on from where it was at the vehicle's speed (a new lower feature moves it forwards).
+            near_v = members[(np.abs(ys - s[rep, 1]) < NEAR_REP_M) & (age[members] >= 3)]
+            vy_near = float(np.median(s[near_v, 3])) if len(near_v) else float(s[rep, 3])
             if tr.trajectory:
-                prev = tr.trajectory[-1][2]
-                rep_y = min(rep_y, prev) if sign < 0 else max(rep_y, prev)
+                t0, _, prev = tr.trajectory[-1]
+                ahead = prev + vy_near * (t - t0)
+                # ... but never more than MAX_LEAD_M ahead of the lowest feature now, nor backwards
+                if sign < 0:
+                    rep_y = min(prev, max(min(rep_y, ahead), rep_y - MAX_LEAD_M))
+                else:
+                    rep_y = max(prev, min(max(rep_y, ahead), rep_y + MAX_LEAD_M))
             else:
                 tr.start_y = rep_y
             if sign < 0:
@@ -234,11 +243,8 @@ class Grouper:
                 rear = rep_y
             # velocity: median over the settled features near the representative one (the lowest part
             # of the vehicle; higher features move faster in the road projection)
-            near = members[(np.abs(ys - s[rep, 1]) < NEAR_REP_M) & (age[members] >= 3)]
-            if len(near):
-                vx, vy = float(np.median(s[near, 2])), float(np.median(s[near, 3]))
-            else:
-                vx, vy = float(s[rep, 2]), float(s[rep, 3])
+            vx = float(np.median(s[near_v, 2])) if len(near_v) else float(s[rep, 2])
+            vy = vy_near
             st = VehicleState(
                 id=vid, t=t, x=float(s[rep, 0]), y_front=front, y_rear=rear, vx=vx,
                 vy=vy, length=length, n_features=int(len(members)),
@@ -258,6 +264,9 @@ class Grouper:
                     self._link(members, groups[host])
                 else:
                     tr.reported = True
+                    # the earlier near-end points, so that lines crossed before this report still count
+                    ahead = 0.0 if sign < 0 else length
+                    st.trajectory = [(pt, px_, py + ahead) for pt, px_, py in tr.trajectory[:-1]] or None
             if lz is not None and lz.in_exit(float(s[rep, 1])):
                 self.tracks.pop(vid)
                 retire.append(members)

@@ -34,6 +34,40 @@ def _grey(img: np.ndarray) -> np.ndarray:
     return img
 
 
+_FFMPEG_OPTIONS_ENV = "OPENCV_FFMPEG_CAPTURE_OPTIONS"
+_env_lock = threading.Lock()
+_rtsp_working: dict[str, str] = {}  # url -> the RTSP transport that last opened it
+
+
+def _is_rtsp(url: str) -> bool:
+    return url.split("://", 1)[0].lower() in ("rtsp", "rtsps")
+
+
+def _open_rtsp(url: str, params: list[int]) -> cv2.VideoCapture:
+    """Open an RTSP stream, interleaved over TCP first (OpenCV's default, NAT-safe) and then
+    RTP over UDP (cameras and servers without TCP support); the transport that worked is tried
+    first next time. An operator's own OPENCV_FFMPEG_CAPTURE_OPTIONS is used as it is."""
+    if os.environ.get(_FFMPEG_OPTIONS_ENV):
+        return cv2.VideoCapture(url, cv2.CAP_FFMPEG, params)
+    order = ["tcp", "udp"]
+    if _rtsp_working.get(url) == "udp":
+        order.reverse()
+    cap = None
+    for transport in order:
+        # OpenCV reads the options from the environment when it opens; set only for this open
+        with _env_lock:
+            os.environ[_FFMPEG_OPTIONS_ENV] = f"rtsp_transport;{transport}"
+            try:
+                cap = cv2.VideoCapture(url, cv2.CAP_FFMPEG, params)
+            finally:
+                os.environ.pop(_FFMPEG_OPTIONS_ENV, None)
+        if cap.isOpened():
+            _rtsp_working[url] = transport
+            return cap
+        cap.release()
+    return cap
+
+
 class CaptureSource:
     """Any cv2.VideoCapture: files, image sequences, RTSP/HTTP (FFmpeg backend), V4L2."""
 
@@ -65,7 +99,10 @@ class CaptureSource:
                 cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, int(c.open_timeout_s * 1000),
                 cv2.CAP_PROP_READ_TIMEOUT_MSEC, int(c.read_timeout_s * 1000),
             ]
-            cap = cv2.VideoCapture(self.url, cv2.CAP_FFMPEG, params)
+            if _is_rtsp(self.url):
+                cap = _open_rtsp(self.url, params)
+            else:
+                cap = cv2.VideoCapture(self.url, cv2.CAP_FFMPEG, params)
         if not cap.isOpened():
             cap.release()
             raise SourceError(f"source.url: cannot open {self.url!r} ({self.kind})")
