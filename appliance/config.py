@@ -1,8 +1,7 @@
-"""The site configuration (one TOML file): schema, defaults, validation with errors naming the key.
+"""The site configuration (one TOML file): schema, defaults, validation with errors naming the key."""
 
-Lanes, loops and zones may be given in road metres (``*_m``) or image pixels (``*_px``); after
-loading, every geometry is also available in metres through the calibration homography.
-"""
+# Lanes, loops and zones may be given in road metres (*_m) or image pixels (*_px); after loading,
+# every geometry is also available in metres through the calibration homography.
 
 from __future__ import annotations
 

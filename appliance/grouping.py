@@ -27,6 +27,10 @@ FRAGMENT_X_MARGIN_NO_CAMERA_M = 2.0  # ... for elevated parts when the camera po
 MIN_LENGTH_M = 4.5  # the footprint reaches at least this far behind the vehicle's front (shortest car)
 GHOST = -1  # host id meaning "a vehicle finalised in the last GHOST_S seconds" (its leftovers)
 GHOST_S = 2.0
+RECHECK_S = 1.5  # a reported group is re-checked for being a fragment of another vehicle this long
+RECHECK_VOTES = 5  # ... and joins a vehicle only after matching it in this many consecutive frames
+MAX_HEIGHT_M = 4.5  # the tallest vehicle: bounds the height magnification of a fragment
+SPEED_WINDOW_S = 0.5  # speeds compared for the height magnification are averaged over this long
 
 
 @njit(cache=True)
@@ -105,11 +109,12 @@ def components(live, state, labels):
         labels[live[a]] = live[r]
 
 
-def _extent(o: VehicleState) -> tuple[float, float]:
-    """Along-road span a vehicle surely covers: its features' span, at least MIN_LENGTH_M behind its
-    front, plus a metre of slack each way."""
+def _extent(o: VehicleState, length: float | None = None) -> tuple[float, float]:
+    """Along-road span a vehicle surely covers: its features' span (or its own length without joined
+    fragments), at least MIN_LENGTH_M behind its front, plus a metre of slack each way."""
     sign = 1.0 if o.y_front >= o.y_rear else -1.0
-    rear = o.y_front - sign * max(abs(o.y_front - o.y_rear), MIN_LENGTH_M)
+    span = abs(o.y_front - o.y_rear) if length is None else length
+    rear = o.y_front - sign * max(span, MIN_LENGTH_M)
     return min(o.y_front, rear) - 1.0, max(o.y_front, rear) + 1.0
 
 
@@ -127,7 +132,22 @@ class VehicleTrack:
     x_lo: float = 0.0
     x_hi: float = 0.0
     last: VehicleState | None = None
+    report_t: float = 0.0
+    own_length: float = 0.0  # the group's length before fragments joined it
+    merged: bool = False
+    votes: tuple[int, int] = (0, 0)  # (candidate host, consecutive frames it matched)
     trajectory: list[tuple[float, float, float]] = field(default_factory=list)
+
+    def mean_vy(self, fallback: float) -> float:
+        """Along-road speed of the near end over the last SPEED_WINDOW_S (steadier than one frame's)."""
+        tr = self.trajectory
+        if len(tr) < 3:
+            return fallback
+        t1, _, y1 = tr[-1]
+        for t0, _, y0 in reversed(tr):
+            if t1 - t0 >= SPEED_WINDOW_S:
+                break
+        return (y1 - y0) / (t1 - t0) if t1 - t0 >= 0.2 else fallback
 
 
 class Grouper:
@@ -149,6 +169,8 @@ class Grouper:
         cam = zones.camera  # (X, Y, height) of the camera, or None
         # only a plausible pole or overpass camera is used to undo the height magnification
         self.foot = cam if cam is not None and 3.0 <= cam[2] <= 60.0 else None
+        h = self.foot[2] if self.foot is not None else 0.0
+        self.k_max = min(2.5, h / (h - MAX_HEIGHT_M)) if h > MAX_HEIGHT_M + 0.5 else 2.5
 
     def reset_slots(self, slots: np.ndarray) -> None:
         """Forget every pair involving slots that now hold new features."""
@@ -191,6 +213,7 @@ class Grouper:
         retire: list[np.ndarray] = []
         out: list[VehicleState] = []
         groups: dict[int, np.ndarray] = {}
+        pending: list = []
         if len(live):
             pair_update(live, s, lane, self.state, self.rng, self.y0, p.connection_lateral_m, p.connection_m,
                         p.segmentation_lateral_m, p.segmentation_m, p.segmentation_per_m)
@@ -252,29 +275,48 @@ class Grouper:
             tr.last = st
             low = members[np.abs(ys - s[rep, 1]) < NEAR_REP_M]  # the low part: the footprint across the road
             tr.x_lo, tr.x_hi = float(s[low, 0].min()), float(s[low, 0].max())
+            if not tr.merged:
+                tr.own_length = length
             tr.trajectory.append((t, st.x, rep_y))
             moved = abs(rep_y - tr.start_y) >= MIN_TRAVEL_M and abs(vy) >= MIN_SPEED_MPS
-            if not tr.reported and tr.n_max >= p.min_features and tr.frames >= p.min_track_frames and moved:
-                host = self._host_of(tr, st, sign)
-                if host == GHOST:  # the rest of a vehicle already finalised: retire it quietly
-                    self.tracks.pop(vid)
-                    retire.append(members)
-                    continue
-                if host is not None:
-                    self._link(members, groups[host])
-                else:
-                    tr.reported = True
-                    # the earlier near-end points, so that lines crossed before this report still count
-                    ahead = 0.0 if sign < 0 else length
-                    st.trajectory = [(pt, px_, py + ahead) for pt, px_, py in tr.trajectory[:-1]] or None
             if lz is not None and lz.in_exit(float(s[rep, 1])):
                 self.tracks.pop(vid)
                 retire.append(members)
                 if tr.reported:
                     out.append(self._finish(tr))
                 continue
-            if tr.reported:
+            if tr.reported and t - tr.report_t > RECHECK_S:
                 out.append(st)
+            elif tr.reported or (tr.n_max >= p.min_features and tr.frames >= p.min_track_frames and moved):
+                pending.append((tr, st, sign, members, length))
+        # fragments are judged once every vehicle of this frame is up to date
+        for tr, st, sign, members, length in pending:
+            host = self._host_of(tr, st, sign)
+            if host == GHOST:  # the rest of a vehicle already finalised: retire it quietly
+                self.tracks.pop(tr.id)
+                retire.append(members)
+                continue
+            if host is not None and tr.reported:
+                n = tr.votes[1] + 1 if tr.votes[0] == host else 1
+                tr.votes = (host, n)
+                if n < RECHECK_VOTES:
+                    out.append(st)
+                    continue
+            elif tr.reported:
+                tr.votes = (0, 0)
+            if host is not None:
+                self._link(members, groups[host])
+                self.fvid[members] = host
+                self.tracks[host].merged = True
+                self.tracks.pop(tr.id)
+                continue
+            if not tr.reported:
+                tr.reported = True
+                tr.report_t = st.t
+                # the earlier near-end points, so that lines crossed before this report still count
+                ahead = 0.0 if sign < 0 else length
+                st.trajectory = [(pt, px_, py + ahead) for pt, px_, py in tr.trajectory[:-1]] or None
+            out.append(st)
         slots = np.concatenate(retire) if retire else np.zeros(0, np.int64)
         return out, slots
 
@@ -283,25 +325,31 @@ class Grouper:
         (its projected speed over the vehicle's, k >= 1) the group's near end falls inside the vehicle's
         footprint. Tall vehicles' tops seen in the next lane, or behind them, are such fragments."""
         y = tr.trajectory[-1][2]
+        vy = tr.mean_vy(st.vy)
         self.recent = [r for r in self.recent if st.t - r[0].t <= GHOST_S]
         for o, x_lo, x_hi in self.recent:
-            if o.vy * st.vy <= 0 or not 0.85 <= st.vy / o.vy <= 2.5:
+            if o.vy * vy <= 0 or not 0.85 <= vy / o.vy <= 2.5:
                 continue
             dy = o.vy * (st.t - o.t)
             lo, hi = _extent(o)
             lo, hi = lo + dy, hi + dy
             # an elevated leftover (moving faster in projection) may lie across the lane; a level one may not
-            m = FRAGMENT_X_MARGIN_NO_CAMERA_M if st.vy / o.vy > 1.05 else FRAGMENT_X_MARGIN_M
+            m = FRAGMENT_X_MARGIN_NO_CAMERA_M if vy / o.vy > 1.05 else FRAGMENT_X_MARGIN_M
             if lo <= y <= hi and x_lo - m <= st.x <= x_hi + m:
                 return GHOST
         for vid, other in self.tracks.items():
             o = other.last
-            if vid == tr.id or o is None or o.t != st.t or o.vy * st.vy <= 0:
+            if vid == tr.id or o is None or o.t != st.t or o.vy * vy <= 0:
                 continue
             if not other.reported and (other.first_t > tr.first_t or other.n_max < tr.n_max):
                 continue
-            k = st.vy / o.vy
-            if not 0.85 <= k <= 2.5:
+            if tr.reported and (not other.reported or other.report_t > tr.report_t):
+                continue  # a reported vehicle only joins one reported before it
+            ov = other.mean_vy(o.vy)
+            if ov * vy <= 0:
+                continue
+            k = vy / ov
+            if not 0.85 <= k <= self.k_max:
                 continue
             gx, gy = st.x, y
             m = FRAGMENT_X_MARGIN_M
@@ -311,7 +359,7 @@ class Grouper:
                     gy = self.foot[1] + (y - self.foot[1]) / k
                 else:  # camera unknown: an elevated part may lie anywhere across the vehicle's lane
                     m = FRAGMENT_X_MARGIN_NO_CAMERA_M
-            lo, hi = _extent(o)
+            lo, hi = _extent(o, other.own_length)
             if lo <= gy <= hi and other.x_lo - m <= gx <= other.x_hi + m:
                 return vid
         return None

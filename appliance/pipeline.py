@@ -27,6 +27,9 @@ LANE_MARGIN_M = 2.0  # features this far beyond their lane's along-road extent a
 LK_WIN = (15, 15)
 LK_LEVELS = 3
 LK_MARGIN_PX = 64  # crop margin around new corners for the initial-velocity flow (> motion per frame)
+STALE_GAP_S = 0.5  # a leading trajectory point this much older than the next one ...
+STALE_SPEED_SHARE = 0.5  # ... and reached at less than this share of the vehicle's speed is dropped
+BACKFILL_MIN_SPEED = 1.0  # m/s: slower vehicles are not extrapolated back to the region entry
 
 
 class VisionPipeline:
@@ -46,6 +49,7 @@ class VisionPipeline:
         self.prev: np.ndarray | None = None
         self.prev_grid: np.ndarray | None = None
         self.prev_t: float | None = None
+        self.first_t: float | None = None  # capture time of the first frame (backfill never goes before it)
         self.offset = (0.0, 0.0)
         self.last_states: list[VehicleState] = []
         self.stats: dict = {
@@ -116,6 +120,8 @@ class VisionPipeline:
         self.prev_grid = grid.copy()
         dt = 0.0 if self.prev_t is None else frame.t - self.prev_t
         self.prev_t = frame.t
+        if self.first_t is None:
+            self.first_t = frame.t
         tm = self.timings
 
         c0 = time.perf_counter()
@@ -132,6 +138,9 @@ class VisionPipeline:
         states, retire = self.grouper.step(frame.t, tr.s, tr.px, tr.lane, tr.alive, tr.age)
         if len(retire):
             tr.kill(retire)
+        for v in states:
+            if v.trajectory is not None:
+                self._backfill(v)
         c4 = time.perf_counter()
         tm["stabilise"] += c1 - c0
         tm["track"] += c2 - c1
@@ -147,6 +156,38 @@ class VisionPipeline:
         st["fiducials_ok"] = self.stabiliser.n_ok
         st["fiducials_total"] = self.stabiliser.n_total
         return states
+
+    def _backfill(self, v: VehicleState) -> None:
+        """Extend a newly reported vehicle's trajectory back to where it entered its lane's Edie region.
+
+        Far away (small in the image) a vehicle is tracked only once it is big enough to hold features,
+        so its first points lie inside the region; it crossed the region's entry earlier. Assuming the
+        speed it has now over that stretch, the entry point is prepended (never before the first frame),
+        so Edie's d(A) and t(A) cover the whole region."""
+        traj = list(v.trajectory or [])
+        speed = abs(v.vy)
+        # a group's first point may come from a static feature it was chained to before the vehicle
+        # arrived: drop leading points from which the vehicle could not have come at anything like its speed
+        while len(traj) >= 2 and traj[1][0] - traj[0][0] > STALE_GAP_S \
+                and abs(traj[1][2] - traj[0][2]) < STALE_SPEED_SHARE * speed * (traj[1][0] - traj[0][0]):
+            traj.pop(0)
+        v.trajectory = traj or None
+        t0, x0, y0 = traj[0] if traj else (v.t, v.x, v.y_front)
+        lz = self.zones.lane_at_road(x0, y0)
+        if lz is None or v.vy * lz.sign < BACKFILL_MIN_SPEED or self.first_t is None:
+            return
+        entry = lz.region_y[1] if lz.sign < 0 else lz.region_y[0]
+        gap = (y0 - entry) * lz.sign  # metres between the entry and the first point, along travel
+        if gap <= 0.0:
+            return
+        t_entry = t0 - gap / speed
+        if t_entry < self.first_t:  # already inside the region when the video started
+            if t0 - self.first_t <= 1e-6:
+                return
+            t_entry = self.first_t
+            entry = y0 - lz.sign * speed * (t0 - t_entry)
+        v.trajectory = [(t_entry, x0, entry)] + list(traj)
+        self.stats["backfilled"] = self.stats.get("backfilled", 0) + 1
 
     def _drop_features(self, t: float) -> None:
         tr = self.tracker

@@ -1,6 +1,7 @@
-"""The long-running service: the frame loop wiring source → VisionPipeline → TrafficMeasures →
-store → outputs, with health, force-calls, fail-safe, period sequencing, resume and reload.
-Sources, outputs and the systemd notifier are injected, so the core imports no drivers."""
+"""The long-running service: the frame loop wiring source → VisionPipeline → TrafficMeasures → store
+→ outputs, with health, force-calls, fail-safe, periods, resume and reload."""
+
+# Sources, outputs and the systemd notifier are injected, so the core imports no drivers.
 
 from __future__ import annotations
 

@@ -186,34 +186,31 @@ class Store:
 
     # -- reads -------------------------------------------------------------------------------
 
+    def _range(self, table: str, time_col: str, from_wall: float, to_wall: float,
+               key_col: str, key: int | None, order: str) -> list[dict]:
+        """Rows of table with from_wall <= time_col < to_wall (and key_col = key unless None), as dicts."""
+        sql = f"SELECT * FROM {table} WHERE {time_col} >= ? AND {time_col} < ?"
+        args: list[Any] = [_num(from_wall), _num(to_wall)]
+        if key is not None:
+            sql += f" AND {key_col} = ?"
+            args.append(key)
+        return [dict(r) for r in self._rows(f"{sql} ORDER BY {order}", args)]
+
     def periods(self, from_wall: float = float("-inf"), to_wall: float = float("inf"), lane: int | None = None) -> list[dict]:
         """Period rows with from_wall <= period_start < to_wall, ordered by start then lane."""
-        sql = "SELECT * FROM periods WHERE period_start >= ? AND period_start < ?"
-        args: list[Any] = [_num(from_wall), _num(to_wall)]
-        if lane is not None:
-            sql += " AND lane = ?"
-            args.append(lane)
-        rows = [dict(r) for r in self._rows(sql + " ORDER BY period_start, lane", args)]
+        rows = self._range("periods", "period_start", from_wall, to_wall, "lane", lane, "period_start, lane")
         for r in rows:
             r["class_counts"] = json.loads(r["class_counts"] or "{}")
             r["partial"] = bool(r["partial"])
         return rows
 
     def loop_events(self, from_wall: float = float("-inf"), to_wall: float = float("inf"), channel: int | None = None) -> list[dict]:
-        sql = "SELECT * FROM loop_events WHERE wall_on >= ? AND wall_on < ?"
-        args: list[Any] = [_num(from_wall), _num(to_wall)]
-        if channel is not None:
-            sql += " AND channel = ?"
-            args.append(channel)
-        return [dict(r) for r in self._rows(sql + " ORDER BY wall_on, id", args)]
+        """Loop events with from_wall <= wall_on < to_wall, in time order."""
+        return self._range("loop_events", "wall_on", from_wall, to_wall, "channel", channel, "wall_on, id")
 
     def vehicles(self, from_wall: float = float("-inf"), to_wall: float = float("inf"), lane: int | None = None) -> list[dict]:
-        sql = "SELECT * FROM vehicles WHERE wall_exit >= ? AND wall_exit < ?"
-        args: list[Any] = [_num(from_wall), _num(to_wall)]
-        if lane is not None:
-            sql += " AND lane = ?"
-            args.append(lane)
-        rows = [dict(r) for r in self._rows(sql + " ORDER BY wall_exit, id", args)]
+        """Vehicle rows with from_wall <= wall_exit < to_wall, in exit order (trajectory decoded or None)."""
+        rows = self._range("vehicles", "wall_exit", from_wall, to_wall, "lane", lane, "wall_exit, id")
         for r in rows:
             r["trajectory"] = json.loads(r["trajectory"]) if r["trajectory"] else None
         return rows

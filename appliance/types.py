@@ -1,9 +1,8 @@
-"""Data passed between the stages, the service and the outputs (see DESIGN.md, data flow).
+"""Data passed between the stages, the service and the outputs (see DESIGN.md, data flow)."""
 
-Road-plane coordinates everywhere: metres, X across the road (+ to the right as seen from the
-camera), Y along the road (+ away from the camera). Times: ``t`` is capture time in monotonic
-seconds, ``wall`` is Unix wall-clock seconds.
-"""
+# Road-plane coordinates everywhere: metres, X across the road (+ to the right as seen from the
+# camera), Y along the road (+ away from the camera). Times: `t` is capture time in monotonic
+# seconds, `wall` is Unix wall-clock seconds.
 
 from __future__ import annotations
 

@@ -30,6 +30,7 @@ class LaneZones:
     detection_y: tuple[float, float]
     exit_y: tuple[float, float]
     count_y: float
+    region_y: tuple[float, float]  # the Edie region along the road
     polygon_px: np.ndarray
     detection_px: np.ndarray
     exit_px: np.ndarray
@@ -104,6 +105,7 @@ class SiteZones:
                     detection_y=det,
                     exit_y=ext,
                     count_y=count_y,
+                    region_y=(float(lane.region_y_m[0]), float(lane.region_y_m[1])) if lane.region_y_m else (ylo, yhi),
                     polygon_px=poly_px,
                     detection_px=_poly_px(H, poly, *det),
                     exit_px=_poly_px(H, poly, *ext),
@@ -142,6 +144,13 @@ class SiteZones:
         x = np.clip(np.round(p[:, 0]).astype(np.int64), 0, self.width - 1)
         y = np.clip(np.round(p[:, 1]).astype(np.int64), 0, self.height - 1)
         return self.lane_image[y, x].astype(np.int32)
+
+    def lane_at_road(self, x: float, y: float) -> LaneZones | None:
+        """The lane whose road polygon holds road point (x, y), or None."""
+        for lz in self.lanes:
+            if cv2.pointPolygonTest(lz.polygon_m.astype(np.float32), (float(x), float(y)), False) >= 0:
+                return lz
+        return None
 
     def by_index(self, index: int) -> LaneZones:
         return self.lanes[index - 1]

@@ -159,7 +159,7 @@ class SerialLineOutput:
         if self._port is not None:
             try:
                 self._port.flush()
-            except (serial.SerialException, OSError):
-                pass
+            except (serial.SerialException, OSError) as e:
+                log.warning("serial line %s: flush on close failed, unsent lines lost: %s", self.cfg.port, e)
             self._port.close()
             self._port = None

@@ -166,6 +166,8 @@ class SyntheticSource:
         self.start_wall_opt = start_wall
         self.live = realtime
         self.stream = None
+        self._pending = None
+        self._t0_mono: float | None = None
         self._seq = 0
 
     def open(self) -> None:
@@ -174,7 +176,10 @@ class SyntheticSource:
             self.stream = self.factory(self.preset, self.seed, width=c.width, height=c.height, fps=c.fps)
         except (KeyError, ValueError) as e:
             raise SourceError(f"source.url: synthetic scene {self.preset!r}: {e}") from None
-        self._t0_mono = time.monotonic()
+        # Render the first frame now, so the renderer's compilation happens before READY and
+        # the real-time clock starts at the first read, not while the service warms up.
+        self._pending = self.stream.next_frame()
+        self._t0_mono = None
         if self.start_wall_opt is not None:
             self._wall0 = self.start_wall_opt
         else:
@@ -183,16 +188,28 @@ class SyntheticSource:
     def read(self) -> Frame | None:
         if self.stream is None:
             return None
-        img, ts = self.stream.next_frame()
+        if self._pending is not None:
+            (img, ts), self._pending = self._pending, None
+        else:
+            img, ts = self.stream.next_frame()
         if img is None:
             return None
+        if self._t0_mono is None:
+            self._t0_mono = time.monotonic() - ts
         if self.realtime:
             delay = self._t0_mono + ts - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
+            elif delay < -1.0:
+                # a stalled camera does not deliver the frames it missed all at once
+                self._t0_mono -= delay
         self._seq += 1
+        if self.realtime and self.start_wall_opt is None:
+            wall = time.time()
+        else:
+            wall = self._wall0 + ts
         return Frame(seq=self._seq, t=self._t0_mono + ts if self.realtime else float(ts),
-                     wall=self._wall0 + ts, image=_grey(img))
+                     wall=wall, image=_grey(img))
 
     def close(self) -> None:
         self.stream = None

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import shutil
 import subprocess
+import sys
+import zipfile
 
 import pytest
 
@@ -65,3 +67,33 @@ def test_install_on_the_live_system_needs_root_or_a_staging_root(tmp_path) -> No
         pytest.skip("running as root: the live install path would touch this machine")
     r = _rw("install")
     assert r.returncode != 0 and "run as root" in r.stderr
+
+
+def test_install_works_from_a_built_wheel(tmp_path) -> None:
+    # a non-editable install has no repo beside it: the example config and the unit must travel in the wheel
+    # (the build is isolated like the README's pip install, so it needs the same access to setuptools>=68)
+    src = tmp_path / "src"
+    for name in ("appliance", "drivers", "tools", "config", "systemd"):
+        shutil.copytree(REPO / name, src / name, symlinks=True, ignore=shutil.ignore_patterns("__pycache__"))
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(REPO / name, src / name)
+    r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q",
+                        "-w", str(tmp_path / "whl"), str(src)], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    (wheel,) = (tmp_path / "whl").glob("roadwatch-*.whl")
+    site = tmp_path / "site"
+    with zipfile.ZipFile(wheel) as z:
+        z.extractall(site)
+    assert not (site / "tools" / "data" / "example.toml").is_symlink()
+    wheel_env = {**env(), "PYTHONPATH": str(site)}
+    r = subprocess.run([sys.executable, "-c", "import tools.install; print(tools.install.__file__)"],
+                       cwd=tmp_path, env=wheel_env, capture_output=True, text=True, timeout=60)
+    assert r.stdout.strip() == str(site / "tools" / "install.py"), r.stdout + r.stderr  # not the repo's copy
+    root = tmp_path / "root"
+    r = subprocess.run([sys.executable, "-m", "tools.cli", "install", "--root", str(root), "--exec", "/usr/bin/rw"],
+                       cwd=tmp_path, env=wheel_env, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert (root / "etc/roadwatch/config.toml").read_text() == (REPO / "config/example.toml").read_text()
+    unit = (root / "etc/systemd/system/roadwatch.service").read_text()
+    assert "ExecStart=/usr/bin/rw" in unit
+    assert unit == (REPO / "systemd/roadwatch.service").read_text().replace("/usr/local/bin/roadwatch", "/usr/bin/rw")

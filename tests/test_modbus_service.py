@@ -1,6 +1,5 @@
-"""End to end: `roadwatch demo` (the real service on the synthetic live scene) serves Modbus TCP;
-a pymodbus client and mbpoll poll it while it runs; the period blocks read over Modbus must equal
-the periods the service stored in SQLite, and the rolling counts its stored loop events."""
+"""End to end: `roadwatch demo` serves Modbus TCP to pymodbus and mbpoll while it runs; the period
+blocks read must equal the periods stored in SQLite, and the rolling counts its stored loop events."""
 
 from __future__ import annotations
 

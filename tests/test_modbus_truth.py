@@ -1,6 +1,5 @@
-"""The simulator's exact truth (loop events, Edie aggregates of a rendered synthetic scene) published
-to the Modbus TCP server and the serial line at once: what a pymodbus client reads and what the
-line carries must equal the truth."""
+"""The simulator's exact truth published to the Modbus TCP server and the serial line at once: what a
+pymodbus client reads and what the line carries must equal the truth."""
 
 from __future__ import annotations
 

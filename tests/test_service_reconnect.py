@@ -1,6 +1,5 @@
-"""The service on a network camera (an HTTP MPEG-TS stream served by ffmpeg on loopback) that
-vanishes and comes back: it survives, raises CAMERA_LOST with the fail-safe on the channels,
-stores the fault, and recovers when the stream returns."""
+"""The service on a network camera (HTTP MPEG-TS from ffmpeg on loopback) that vanishes and comes
+back: it survives, raises CAMERA_LOST with the fail-safe on, stores the fault, and recovers."""
 
 from __future__ import annotations
 

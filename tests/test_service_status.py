@@ -1,6 +1,5 @@
-"""`roadwatch run` as a real subprocess: sd_notify READY/WATCHDOG/STATUS, the status HTTP API
-(status, snapshot, force-call, reload), SIGHUP reload, SIGTERM writing the partial period, and
-refusing an invalid config with exit 2."""
+"""`roadwatch run` as a real subprocess: sd_notify, the status HTTP API (status, snapshot, force-call,
+reload), SIGHUP reload, SIGTERM writing the partial period, and refusing an invalid config."""
 
 from __future__ import annotations
 

@@ -13,13 +13,11 @@ import pytest
 
 from appliance.config import load_site, parse_site
 from appliance.geometry import polygon_contains
+from simulate_helpers import CLEAN, DT, changed_pixels_match_box, crossings, run_scene
 from tools.simulate.scene import Scene
 from tools.simulate.stream import site_toml
-from tools.simulate.traffic import lane_at_x
 
-CLEAN = dict(demand_vph=0.0, noise_sigma=0.0, auto_gain=False, shadows=False, motion_blur=False, defocus=0.0)
 R = -350.0  # the `curve` preset's radius
-DT = 0.04
 SECONDS = 60.0
 PERIOD = 30.0
 
@@ -96,13 +94,7 @@ def test_projected_box_matches_rendered_pixels_on_the_curve(lane_idx: int, cls: 
     img, rows = sc.render()
     assert len(rows) == 1
     r = rows[0]
-    ys, xs = np.nonzero(np.abs(img.astype(int) - empty.astype(int)) > 0)
-    # as in the straight test: a post may hide a sliver and a face may match the road's grey at its edge
-    assert len(xs) > 50
-    assert xs.min() == pytest.approx(r["bbox_x0"], abs=2.0)
-    assert xs.max() == pytest.approx(r["bbox_x1"], abs=2.0)
-    assert ys.min() == pytest.approx(r["bbox_y0"], abs=2.0)
-    assert ys.max() == pytest.approx(r["bbox_y1"], abs=2.0)
+    xs, ys = changed_pixels_match_box(img, empty, r)
     assert r["visible_frac"] > 0.8
     # truth in road X/Y: the front centre sits on the bent lane; the body lies along the tangent there
     heading = math.atan(y_front / R)  # dX/dY of the bend is Y/R
@@ -119,46 +111,16 @@ def test_projected_box_matches_rendered_pixels_on_the_curve(lane_idx: int, cls: 
     assert polygon_contains(widened, centre_road)[0], centre_road
 
 
-def _run(seed: int, seconds: float, **overrides):
-    """Step a curved scene (no rendering), recording each vehicle's front Y and lane at every step."""
-    sc = Scene("curve", seed, period_s=PERIOD, **overrides)
-    times, snaps = [0.0], [_snap(sc)]
-    for _ in range(int(round(seconds / DT))):
-        sc.step(DT)
-        times.append(sc.t)
-        snaps.append(_snap(sc))
-    return sc, np.array(times), snaps
-
-
-def _snap(sc: Scene) -> dict:
-    tr = sc.traffic
-    lanes = lane_at_x(sc.layout, tr.x)
-    return {int(i): (float(y), int(ln), float(L)) for i, y, ln, L in zip(tr.id, tr.y_front(), lanes, tr.length)}
-
-
 @pytest.fixture(scope="module")
 def curved():
     # no lane changes, so loop and count-line tallies must agree exactly
-    return _run(5, SECONDS, lane_changes=False, demand_vph=1300.0)
-
-
-def _crossings(times, snaps, lane_id: int, y: float, direction: int) -> list[float]:
-    out = []
-    for k in range(1, len(snaps)):
-        for vid, (y1, ln, _) in snaps[k].items():
-            prev = snaps[k - 1].get(vid)
-            if prev is None or ln != lane_id:
-                continue
-            y0 = prev[0]
-            if (direction < 0 and y0 > y >= y1) or (direction > 0 and y0 < y <= y1):
-                out.append(times[k - 1] + (y - y0) / (y1 - y0) * (times[k] - times[k - 1]))
-    return out
+    return run_scene("curve", 5, SECONDS, PERIOD, lane_changes=False, demand_vph=1300.0)
 
 
 def test_curve_counts_equal_trajectories_and_loop_actuations(curved) -> None:
     sc, times, snaps = curved
     for ln in sc.truth.lanes:
-        mine = sorted(_crossings(times, snaps, ln.id, ln.count_y, ln.direction))
+        mine = sorted(crossings(times, snaps, ln.id, ln.count_y, ln.direction))
         theirs = sorted(c[2] for c in sc.truth.crossings if c[0] == ln.id)
         assert len(mine) == len(theirs) > 5
         assert np.allclose(mine, theirs, atol=1e-6)

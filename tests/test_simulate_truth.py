@@ -5,61 +5,29 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from simulate_helpers import DT, crossings, run_scene
 from tools.simulate.scene import Scene
-from tools.simulate.traffic import lane_at_x
 
-DT = 0.04
 SECONDS = 70.0
 PERIOD = 30.0
 
 
-def _run(preset: str, seed: int, seconds: float, **overrides):
-    """Step a scene (no rendering) and record each vehicle's front Y and lane at every step."""
-    sc = Scene(preset, seed, period_s=PERIOD, **overrides)
-    times = [0.0]
-    snaps = [_snap(sc)]
-    for _ in range(int(round(seconds / DT))):
-        sc.step(DT)
-        times.append(sc.t)
-        snaps.append(_snap(sc))
-    return sc, np.array(times), snaps
-
-
-def _snap(sc: Scene) -> dict:
-    tr = sc.traffic
-    lanes = lane_at_x(sc.layout, tr.x)
-    return {int(i): (float(y), int(ln), float(L)) for i, y, ln, L in zip(tr.id, tr.y_front(), lanes, tr.length)}
-
-
 @pytest.fixture(scope="module")
 def dense():
-    return _run("dense", 3, SECONDS)
+    return run_scene("dense", 3, SECONDS, PERIOD)
 
 
 @pytest.fixture(scope="module")
 def straight():
     # no lane changes: every vehicle stays in its lane, so loop and count-line tallies must agree exactly
-    return _run("free-flow", 5, SECONDS, lane_changes=False, demand_vph=1200.0)
-
-
-def _crossings(times, snaps, lane_id: int, y: float, direction: int) -> list[float]:
-    out = []
-    for k in range(1, len(snaps)):
-        for vid, (y1, ln, _) in snaps[k].items():
-            prev = snaps[k - 1].get(vid)
-            if prev is None or ln != lane_id:
-                continue
-            y0 = prev[0]
-            if (direction < 0 and y0 > y >= y1) or (direction > 0 and y0 < y <= y1):
-                out.append(times[k - 1] + (y - y0) / (y1 - y0) * (times[k] - times[k - 1]))
-    return out
+    return run_scene("free-flow", 5, SECONDS, PERIOD, lane_changes=False, demand_vph=1200.0)
 
 
 def test_counts_match_recorded_trajectories(dense) -> None:
     sc, times, snaps = dense
     assert sc.truth.crossings, "no vehicle crossed a count line"
     for ln in sc.truth.lanes:
-        mine = sorted(_crossings(times, snaps, ln.id, ln.count_y, ln.direction))
+        mine = sorted(crossings(times, snaps, ln.id, ln.count_y, ln.direction))
         theirs = sorted(c[2] for c in sc.truth.crossings if c[0] == ln.id)
         assert len(mine) == len(theirs) > 5
         assert np.allclose(mine, theirs, atol=1e-6)

@@ -1,6 +1,5 @@
-"""The service on a real RTSP camera: ffmpeg publishes the real clip to an RTSP server on loopback
-(Debian's rtsp-server-perl, RTP over UDP); the server and publisher vanish and come back, and the
-service survives, raises CAMERA_LOST, and recovers with frames flowing again."""
+"""The service on a real RTSP camera (ffmpeg publishing the real clip to rtsp-server-perl on loopback)
+that vanishes and comes back: it survives, raises CAMERA_LOST and recovers with frames flowing."""
 
 from __future__ import annotations
 

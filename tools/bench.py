@@ -1,7 +1,6 @@
-"""`roadwatch bench`: frames per second per core of each vision stage and the whole pipeline, next to decoding.
+"""`roadwatch bench`: frames per second per core of each vision stage and the whole pipeline, next to decoding."""
 
-Scenes come from the simulator (rendered once, cached in the temp directory); the process is pinned to one core.
-"""
+# Scenes come from the simulator (rendered once, cached in the temp directory); the process is pinned to one core.
 
 from __future__ import annotations
 

@@ -1,8 +1,7 @@
-"""The `roadwatch` command: one click group whose subcommands live in their own modules.
+"""The `roadwatch` command: one click group whose subcommands live in their own modules."""
 
-Subcommands are imported only when used, so `roadwatch --help` is fast and a broken optional
-module cannot stop the others.
-"""
+# Subcommands are imported only when used, so `roadwatch --help` is fast and a broken optional
+# module cannot stop the others.
 
 from __future__ import annotations
 

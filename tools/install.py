@@ -12,16 +12,18 @@ from pathlib import Path
 
 import click
 
-REPO = Path(__file__).resolve().parent.parent
+# config/example.toml and systemd/roadwatch.service ship as package data of `tools` (tools/data holds
+# symlinks to them in the repo, real copies in a wheel), so install works from any kind of install
+ASSETS = Path(__file__).resolve().parent / "data"
 UNIT_NAME = "roadwatch.service"
 SERVICE_USER = "roadwatch"
 DEFAULT_EXEC = "/usr/local/bin/roadwatch"
 
 
-def _asset(rel: str) -> Path:
-    p = REPO / rel
+def _asset(name: str) -> Path:
+    p = ASSETS / name
     if not p.is_file():
-        raise click.ClickException(f"{rel} is missing from this installation ({p})")
+        raise click.ClickException(f"{name} is missing from this installation ({p}); reinstall roadwatch")
     return p
 
 
@@ -38,7 +40,7 @@ def _executable() -> str:
 
 def unit_text(executable: str) -> str:
     """The unit file with ExecStart pointing at this box's roadwatch executable."""
-    return _asset("systemd/roadwatch.service").read_text().replace(DEFAULT_EXEC, executable)
+    return _asset(UNIT_NAME).read_text().replace(DEFAULT_EXEC, executable)
 
 
 def _run(cmd: list[str]) -> None:
@@ -70,7 +72,7 @@ def install(root: str | None, enable: bool, executable: str | None) -> None:
     if cfg.exists():
         click.echo(f"kept existing {cfg}")
     else:
-        shutil.copyfile(_asset("config/example.toml"), cfg)
+        shutil.copyfile(_asset("example.toml"), cfg)
         click.echo(f"wrote {cfg} from the example (edit it for this site)")
     unit = unit_dir / UNIT_NAME
     unit.write_text(unit_text(exe))

@@ -1,17 +1,5 @@
-"""Drawing the site over a snapshot with cv2: lanes, zones, loops, fiducials and a metre grid.
-
-Fixed colours per kind (BGR tuples, as cv2 uses them; the field guide lists them):
-
-    lane            green    (0, 200, 0)      filled 35 % + outline, label "lane N"
-    detection zone  yellow   (0, 220, 255)    outline, label "det"
-    exit zone       magenta  (255, 0, 255)    outline, label "exit"
-    count line      orange   (0, 140, 255)    line across the lane at count_y_m
-    loop            red      (0, 0, 255)      filled 55 % + outline, label "LOOPID ch C"
-    fiducial        cyan     (255, 255, 0)    cross + square of the template size
-    grid lines      white    (255, 255, 255)  metre grid on the road plane
-    grid checker    blue     (255, 128, 0)    every other grid cell tinted 25 %
-    calib. point    blue     (255, 0, 0)      circle with its reprojection error in m
-"""
+"""Drawing the site over a snapshot with cv2: lanes, zones, loops, fiducials and a metre grid,
+in fixed colours per kind (COLOURS; the field guide lists them)."""
 
 from __future__ import annotations
 

@@ -22,7 +22,7 @@ def _preset_help() -> str:
         "OUT/truth/ (vehicles.csv per frame and vehicle, loop_events.csv, aggregates.csv per lane and\n"
         "5-minute period, frames.csv with true capture times, meta.json).\n\n"
         "\b\nPresets:\n" + _preset_help() + "\n\n"
-        "\b\nExample:\n  roadwatch simulate --preset dense --seconds 300 --out /tmp/dense"
+        "\b\nExample:\n  roadwatch simulate --preset dense --seconds 300 --out dense"
     ),
 )
 @click.option("--preset", "-p", type=click.Choice(list(PRESETS)), default="free-flow", show_default=True)

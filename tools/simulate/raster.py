@@ -1,7 +1,6 @@
-"""Filling many convex quads in painter's order in one call (numba), with its NumPy reference.
+"""Filling many convex quads in painter's order in one call (numba), with its NumPy reference."""
 
-A pixel (x, y) is filled when its centre, the integer point (x, y), lies inside the quad (edges included).
-"""
+# A pixel (x, y) is filled when its centre, the integer point (x, y), lies inside the quad (edges included).
 
 from __future__ import annotations
 
