@@ -109,7 +109,7 @@ class TrackingParams:
     min_features: int = 4  # a vehicle needs at least this many features
     min_track_frames: int = 5
     stabilise: bool = True
-    stabilise_model: str = "translation"  # or "similarity"
+    stabilise_model: str = "translation"  # the only model implemented (image shift from the fiducials)
     connection_lateral_m: float = 2.5  # r0 across the road (features of one vehicle are this close)
     segmentation_lateral_m: float = 1.0  # pair dismissed when its lateral distance range exceeds this
     segmentation_per_m: float = 0.1  # extra along-road allowance per metre travelled (feature heights)
@@ -290,7 +290,7 @@ def _load_dataclass(cls, table: dict, prefix: str):
     return cls(**kwargs)
 
 
-def to_dict(obj) -> dict:
+def to_dict(obj: Any) -> dict:
     """Dataclass -> plain dict for TOML (None values dropped, TOML has no null)."""
 
     def clean(v):
@@ -478,8 +478,9 @@ def _validate(cfg: SiteConfig) -> None:
         raise ConfigError("tracking.template_px", "must be odd and at least 5")
     if t.connection_m <= t.segmentation_m:
         raise ConfigError("tracking.connection_m", "must be larger than tracking.segmentation_m")
-    if t.stabilise_model not in ("translation", "similarity"):
-        raise ConfigError("tracking.stabilise_model", "must be 'translation' or 'similarity'")
+    if t.stabilise_model != "translation":
+        raise ConfigError("tracking.stabilise_model",
+                          f"{t.stabilise_model!r}: only 'translation' is implemented (the stabiliser estimates an image shift)")
 
     m = cfg.measures
     if m.period_s <= 0 or 86400 % m.period_s != 0:

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from numpy.typing import ArrayLike
 
 
 class CalibrationError(ValueError):
@@ -36,14 +37,14 @@ class Homography:
     Hinv: np.ndarray
 
     @classmethod
-    def from_matrix(cls, H) -> "Homography":
+    def from_matrix(cls, H: ArrayLike) -> "Homography":
         H = np.asarray(H, dtype=np.float64).reshape(3, 3)
         if abs(np.linalg.det(H)) < 1e-12:
             raise CalibrationError("homography matrix is singular")
         return cls(H / H[2, 2], np.linalg.inv(H) / np.linalg.inv(H)[2, 2])
 
     @classmethod
-    def from_points(cls, image_px, road_m) -> "Homography":
+    def from_points(cls, image_px: ArrayLike, road_m: ArrayLike) -> "Homography":
         img = _as_points(image_px, "calibration.image_px")
         road = _as_points(road_m, "calibration.road_m")
         if len(img) != len(road):
@@ -59,19 +60,19 @@ class Homography:
             raise CalibrationError("calibration: no homography fits these points (degenerate layout)")
         return cls.from_matrix(H)
 
-    def img_to_road(self, pts) -> np.ndarray:
+    def img_to_road(self, pts: ArrayLike) -> np.ndarray:
         """(N, 2) pixels -> (N, 2) metres."""
         return _apply(self.H, pts)
 
-    def road_to_img(self, pts) -> np.ndarray:
+    def road_to_img(self, pts: ArrayLike) -> np.ndarray:
         """(N, 2) metres -> (N, 2) pixels."""
         return _apply(self.Hinv, pts)
 
-    def reprojection_error_m(self, image_px, road_m) -> np.ndarray:
+    def reprojection_error_m(self, image_px: ArrayLike, road_m: ArrayLike) -> np.ndarray:
         """Per-point distance in metres between the mapped image points and their road points."""
         return np.linalg.norm(self.img_to_road(image_px) - np.asarray(road_m, dtype=np.float64), axis=1)
 
-    def metres_per_pixel(self, pts) -> np.ndarray:
+    def metres_per_pixel(self, pts: ArrayLike) -> np.ndarray:
         """Depth scale at image points: (N, 2) metres per pixel along image x and y."""
         p = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
         r = self.img_to_road(p)
@@ -93,7 +94,7 @@ def _apply(M: np.ndarray, pts) -> np.ndarray:
     return q[:, :2] / q[:, 2:3]
 
 
-def polygon_contains(poly: np.ndarray, pts) -> np.ndarray:
+def polygon_contains(poly: np.ndarray, pts: ArrayLike) -> np.ndarray:
     """Vectorised point-in-polygon test (even-odd rule). poly (M, 2), pts (N, 2) -> bool (N,)."""
     poly = np.asarray(poly, dtype=np.float64)
     p = np.asarray(pts, dtype=np.float64).reshape(-1, 2)

@@ -28,7 +28,8 @@ MIN_LENGTH_M = 4.5  # the footprint reaches at least this far behind the vehicle
 GHOST = -1  # host id meaning "a vehicle finalised in the last GHOST_S seconds" (its leftovers)
 GHOST_S = 2.0
 RECHECK_S = 1.5  # a reported group is re-checked for being a fragment of another vehicle this long
-RECHECK_VOTES = 5  # ... and joins a vehicle only after matching it in this many consecutive frames
+RECHECK_VOTES = 10  # ... and joins a vehicle only after matching it in this many consecutive frames
+RECHECK_DRIFT_M = 1.5  # ... at a steady place on it (this much drift: a separate vehicle overtaking)
 MAX_HEIGHT_M = 4.5  # the tallest vehicle: bounds the height magnification of a fragment
 SPEED_WINDOW_S = 0.5  # speeds compared for the height magnification are averaged over this long
 
@@ -135,7 +136,7 @@ class VehicleTrack:
     report_t: float = 0.0
     own_length: float = 0.0  # the group's length before fragments joined it
     merged: bool = False
-    votes: tuple[int, int] = (0, 0)  # (candidate host, consecutive frames it matched)
+    votes: tuple[int, int, float] = (0, 0, 0.0)  # (candidate host, consecutive frames it matched, place on it)
     trajectory: list[tuple[float, float, float]] = field(default_factory=list)
 
     def mean_vy(self, fallback: float) -> float:
@@ -165,6 +166,7 @@ class Grouper:
         self.tracks: dict[int, VehicleTrack] = {}
         self.next_vid = 1
         self.finished_total = 0
+        self._place = 0.0
         self.recent: list[tuple[VehicleState, float, float]] = []  # finished vehicles, for their leftovers
         cam = zones.camera  # (X, Y, height) of the camera, or None
         # only a plausible pole or overpass camera is used to undo the height magnification
@@ -297,13 +299,15 @@ class Grouper:
                 retire.append(members)
                 continue
             if host is not None and tr.reported:
-                n = tr.votes[1] + 1 if tr.votes[0] == host else 1
-                tr.votes = (host, n)
+                off = self._place
+                same = tr.votes[0] == host and abs(off - tr.votes[2]) <= RECHECK_DRIFT_M
+                n = tr.votes[1] + 1 if same else 1
+                tr.votes = (host, n, tr.votes[2] if same else off)
                 if n < RECHECK_VOTES:
                     out.append(st)
                     continue
             elif tr.reported:
-                tr.votes = (0, 0)
+                tr.votes = (0, 0, 0.0)
             if host is not None:
                 self._link(members, groups[host])
                 self.fvid[members] = host
@@ -325,9 +329,10 @@ class Grouper:
         (its projected speed over the vehicle's, k >= 1) the group's near end falls inside the vehicle's
         footprint. Tall vehicles' tops seen in the next lane, or behind them, are such fragments."""
         y = tr.trajectory[-1][2]
-        vy = tr.mean_vy(st.vy)
+        # a reported group's speed over a while (steadier); a new one has only its features' speeds
+        vy = tr.mean_vy(st.vy) if tr.reported else st.vy
         self.recent = [r for r in self.recent if st.t - r[0].t <= GHOST_S]
-        for o, x_lo, x_hi in self.recent:
+        for o, x_lo, x_hi in [] if tr.reported else self.recent:
             if o.vy * vy <= 0 or not 0.85 <= vy / o.vy <= 2.5:
                 continue
             dy = o.vy * (st.t - o.t)
@@ -345,12 +350,12 @@ class Grouper:
                 continue
             if tr.reported and (not other.reported or other.report_t > tr.report_t):
                 continue  # a reported vehicle only joins one reported before it
-            ov = other.mean_vy(o.vy)
+            ov = other.mean_vy(o.vy) if tr.reported else o.vy
             if ov * vy <= 0:
                 continue
             k = vy / ov
-            if not 0.85 <= k <= self.k_max:
-                continue
+            if not (1.05 if tr.reported else 0.85) <= k <= self.k_max:
+                continue  # a reported group only joins as an elevated part (level ones would be queued cars)
             gx, gy = st.x, y
             m = FRAGMENT_X_MARGIN_M
             if k > 1.05:
@@ -361,6 +366,7 @@ class Grouper:
                     m = FRAGMENT_X_MARGIN_NO_CAMERA_M
             lo, hi = _extent(o, other.own_length)
             if lo <= gy <= hi and other.x_lo - m <= gx <= other.x_hi + m:
+                self._place = gy - o.y_front  # where on the vehicle the group lies
                 return vid
         return None
 

@@ -35,7 +35,8 @@ def _contains(px, py, a, b, x, y) -> bool:
 
 
 @njit(cache=True)
-def lanes_at_kernel(px, py, offsets, ids, xs, ys, max_gap, out) -> None:
+def lanes_at_kernel(px: np.ndarray, py: np.ndarray, offsets: np.ndarray, ids: np.ndarray, xs: np.ndarray,
+                    ys: np.ndarray, max_gap: float, out: np.ndarray) -> None:
     """Lane id (0 = none) of each point: containing lane, else the lane continuing along the road,
     else the nearest lane within max_gap. Same rules as LaneMap.lane_at (the reference)."""
     n_lanes = len(ids)

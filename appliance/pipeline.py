@@ -29,7 +29,13 @@ LK_LEVELS = 3
 LK_MARGIN_PX = 64  # crop margin around new corners for the initial-velocity flow (> motion per frame)
 STALE_GAP_S = 0.5  # a leading trajectory point this much older than the next one ...
 STALE_SPEED_SHARE = 0.5  # ... and reached at less than this share of the vehicle's speed is dropped
-BACKFILL_MIN_SPEED = 1.0  # m/s: slower vehicles are not extrapolated back to the region entry
+BACKFILL_MIN_SPEED = 1.0
+BACKFILL_MIN_FEATURES = 4  # groups with fewer features when released are not extended (fragments)
+# A newly reported vehicle is held back this long (capture seconds) before its first report goes out, so
+# its speed is measured over its own points before its trajectory is extended back to the region entry,
+# and a group that merges into another meanwhile never reaches the measures.
+HOLD_S = 0.5
+HOLD_MIN_TRAVEL_M = 3.0  # ... and until it has moved this far (an occluder's edge where vehicles emerge does not)  # m/s: slower vehicles are not extrapolated back to the region entry
 
 
 class VisionPipeline:
@@ -49,7 +55,8 @@ class VisionPipeline:
         self.prev: np.ndarray | None = None
         self.prev_grid: np.ndarray | None = None
         self.prev_t: float | None = None
-        self.first_t: float | None = None  # capture time of the first frame (backfill never goes before it)
+        self.first_t: float | None = None
+        self.held: dict[int, list[VehicleState]] = {}  # vehicle id -> its states since its first report  # capture time of the first frame (backfill never goes before it)
         self.offset = (0.0, 0.0)
         self.last_states: list[VehicleState] = []
         self.stats: dict = {
@@ -138,9 +145,7 @@ class VisionPipeline:
         states, retire = self.grouper.step(frame.t, tr.s, tr.px, tr.lane, tr.alive, tr.age)
         if len(retire):
             tr.kill(retire)
-        for v in states:
-            if v.trajectory is not None:
-                self._backfill(v)
+        states = self._hold_new(states)
         c4 = time.perf_counter()
         tm["stabilise"] += c1 - c0
         tm["track"] += c2 - c1
@@ -157,7 +162,44 @@ class VisionPipeline:
         st["fiducials_total"] = self.stabiliser.n_total
         return states
 
-    def _backfill(self, v: VehicleState) -> None:
+    def _hold_new(self, states: list[VehicleState]) -> list[VehicleState]:
+        """Hold each new vehicle's states for HOLD_S, then release them as one report whose trajectory
+        runs from the region entry (backfilled) through the held points."""
+        out = []
+        seen = set()
+        for v in states:
+            held = self.held.get(v.id)
+            if held is None and v.trajectory is None:
+                out.append(v)
+                continue
+            if held is None:
+                held = self.held[v.id] = []
+            held.append(v)
+            seen.add(v.id)
+            moved = abs(v.y_front - held[0].y_front) >= HOLD_MIN_TRAVEL_M
+            if v.finished or (v.t - held[0].t >= HOLD_S and moved):
+                del self.held[v.id]
+                first = held[0]
+                pts = list(first.trajectory or []) + [(h.t, h.x, h.y_front) for h in held[:-1]]
+                v.trajectory = pts
+                self._backfill(v, held)
+                out.append(v)
+        for vid in [vid for vid in self.held if vid not in seen]:
+            del self.held[vid]  # merged into another vehicle (or dropped) before its first report
+        return out
+
+    def _group_speed(self, vid: int) -> float:
+        """Median along-road speed of a vehicle's settled, moving features (0 when it has none). Right
+        after a vehicle's first report its own velocity may still lean on a feature that is not moving
+        (an occluder's edge where it emerged)."""
+        tr = self.tracker
+        live = tr.live()
+        m = live[self.grouper.fvid[live] == vid]
+        vy = np.abs(tr.s[m, 3])
+        ok = (vy > BACKFILL_MIN_SPEED) & (tr.age[m] >= 3)
+        return float(np.median(vy[ok])) if ok.any() else 0.0
+
+    def _backfill(self, v: VehicleState, held: list[VehicleState] | None = None) -> None:
         """Extend a newly reported vehicle's trajectory back to where it entered its lane's Edie region.
 
         Far away (small in the image) a vehicle is tracked only once it is big enough to hold features,
@@ -165,21 +207,27 @@ class VisionPipeline:
         speed it has now over that stretch, the entry point is prepended (never before the first frame),
         so Edie's d(A) and t(A) cover the whole region."""
         traj = list(v.trajectory or [])
-        speed = abs(v.vy)
+        speed = max(abs(v.vy), self._group_speed(v.id))
+        if held and held[-1].t - held[0].t >= 0.5 * HOLD_S:  # measured over the held points
+            speed = abs(held[-1].y_front - held[0].y_front) / (held[-1].t - held[0].t)
         # a group's first point may come from a static feature it was chained to before the vehicle
         # arrived: drop leading points from which the vehicle could not have come at anything like its speed
-        while len(traj) >= 2 and traj[1][0] - traj[0][0] > STALE_GAP_S \
-                and abs(traj[1][2] - traj[0][2]) < STALE_SPEED_SHARE * speed * (traj[1][0] - traj[0][0]):
-            traj.pop(0)
+        pts = traj + [(v.t, v.x, v.y_front)]
+        while len(pts) >= 2 and pts[1][0] - pts[0][0] > STALE_GAP_S \
+                and abs(pts[1][2] - pts[0][2]) < STALE_SPEED_SHARE * speed * (pts[1][0] - pts[0][0]):
+            pts.pop(0)
+        traj = pts[:-1]
         v.trajectory = traj or None
-        t0, x0, y0 = traj[0] if traj else (v.t, v.x, v.y_front)
-        lz = self.zones.lane_at_road(x0, y0)
-        if lz is None or v.vy * lz.sign < BACKFILL_MIN_SPEED or self.first_t is None:
+        t0, x0, y0 = pts[0]
+        lz = self.zones.lane_at_road(v.x, v.y_front) or self.zones.lane_at_road(x0, y0)
+        if v.n_features < BACKFILL_MIN_FEATURES:
+            return  # a few features only: likely a fragment of another vehicle, not extended
+        if lz is None or v.vy * lz.sign < BACKFILL_MIN_SPEED or speed < BACKFILL_MIN_SPEED or self.first_t is None:
             return
         entry = lz.region_y[1] if lz.sign < 0 else lz.region_y[0]
         gap = (y0 - entry) * lz.sign  # metres between the entry and the first point, along travel
-        if gap <= 0.0:
-            return
+        if gap <= 0.0 or (y0 - lz.count_y) * lz.sign > 0.0:
+            return  # nothing to add; or first seen past the count line: the backfill must not make a count
         t_entry = t0 - gap / speed
         if t_entry < self.first_t:  # already inside the region when the video started
             if t0 - self.first_t <= 1e-6:

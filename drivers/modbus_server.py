@@ -129,11 +129,13 @@ class RegisterStore:
         return None
 
     # pymodbus context protocol
-    async def async_getValues(self, device_id: int, func_code: int, address: int, count: int = 1):
+    async def async_getValues(self, device_id: int, func_code: int, address: int,
+                              count: int = 1) -> list[int] | list[bool] | ExcCodes:
         self._check_unit(device_id)
         return self.read(func_code, address, count)
 
-    async def async_setValues(self, device_id: int, func_code: int, address: int, values):
+    async def async_setValues(self, device_id: int, func_code: int, address: int,
+                              values: list[int] | list[bool]) -> ExcCodes | None:
         self._check_unit(device_id)
         return self.write(func_code, address, [int(v) for v in values])
 

@@ -9,6 +9,9 @@ from pathlib import Path
 
 import pytest
 
+# helper modules shared by several test files: their asserts report values like the tests' own
+pytest.register_assert_rewrite("simulate_helpers", "fieldtool_sites")
+
 os.environ.setdefault("NUMBA_CACHE_DIR", os.path.join(tempfile.gettempdir(), "roadwatch-test-numba"))
 
 REPO = Path(__file__).resolve().parent.parent

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import tomli_w
 
-from test_service_sitefiles import get, start, wait_status
+from test_service_sitefiles import start, wait_status
 
 
 def rss_mb(pid: int) -> float:

@@ -13,7 +13,7 @@ import pytest
 
 from appliance.config import load_site, parse_site
 from appliance.geometry import polygon_contains
-from simulate_helpers import CLEAN, DT, changed_pixels_match_box, crossings, run_scene
+from simulate_helpers import CLEAN, DT, assert_edie_rows, changed_pixels_match_box, crossings, edie_totals, run_scene
 from tools.simulate.scene import Scene
 from tools.simulate.stream import site_toml
 
@@ -162,34 +162,11 @@ def test_curve_edie_matches_trajectories_and_q_equals_kv(curved) -> None:
     aggs = sc.truth.aggregates()
     n_periods = int(math.ceil(SECONDS / PERIOD))
     assert len(aggs) == len(sc.truth.lanes) * n_periods
-    sub = np.linspace(0.0, 1.0, 11)
     for ln in sc.truth.lanes:
-        a0, a1 = ln.region
-        dist, tim = np.zeros(n_periods), np.zeros(n_periods)
-        for k in range(1, len(snaps)):
-            t0, t1 = times[k - 1], times[k]
-            for vid, (y1, lane, _) in snaps[k].items():
-                prev = snaps[k - 1].get(vid)
-                if prev is None or lane != ln.id:
-                    continue
-                yy = prev[0] + (y1 - prev[0]) * sub
-                tt = t0 + (t1 - t0) * sub
-                mid_y, mid_t = 0.5 * (yy[1:] + yy[:-1]), 0.5 * (tt[1:] + tt[:-1])
-                inside = (mid_y >= a0) & (mid_y <= a1)
-                step_d = np.abs(np.diff(yy))
-                for p in range(n_periods):
-                    sel = inside & (mid_t >= p * PERIOD) & (mid_t < (p + 1) * PERIOD)
-                    dist[p] += float(step_d[sel].sum())
-                    tim[p] += float(np.count_nonzero(sel) * (t1 - t0) / 10.0)
+        dist, tim = edie_totals(times, snaps, ln.id, ln.region, PERIOD, n_periods)
         rows = [r for r in aggs if r["lane"] == ln.id]
-        for p, r in enumerate(rows):
-            covered = min(PERIOD, SECONDS - p * PERIOD)
-            area = (a1 - a0) / 1000.0 * covered / 3600.0
-            # sub-sampling error is one sub-step per region crossing: < 0.5 % of totals over 30 s
-            assert r["flow_vph"] == pytest.approx(dist[p] / 1000.0 / area, rel=5e-3)
-            assert r["density_vpkm"] == pytest.approx(tim[p] / 3600.0 / area, rel=5e-3)
-            assert r["flow_vph"] == pytest.approx(r["density_vpkm"] * r["speed_kmh"], rel=1e-9)
-            assert r["flow_vph"] > 0
+        assert_edie_rows(rows, dist, tim, ln.region, SECONDS, PERIOD)
+        assert all(r["flow_vph"] > 0 for r in rows)
 
 
 def test_huge_radius_gives_the_straight_scene() -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from simulate_helpers import DT, crossings, run_scene
+from simulate_helpers import DT, assert_edie_rows, crossings, edie_totals, run_scene
 from tools.simulate.scene import Scene
 
 SECONDS = 70.0
@@ -69,40 +69,9 @@ def test_edie_matches_recorded_trajectories_and_q_equals_kv(dense) -> None:
     aggs = sc.truth.aggregates()
     assert len(aggs) == len(sc.truth.lanes) * 3  # 70 s from 00:00:00 at 30 s periods: 2 full + 1 partial
     for ln in sc.truth.lanes:
-        a0, a1 = ln.region
-        # independent Edie: sum over steps of clipped front-point motion, sampled finely (10 sub-steps)
-        dist = np.zeros(3)
-        tim = np.zeros(3)
-        sub = np.linspace(0.0, 1.0, 11)
-        for k in range(1, len(snaps)):
-            t0, t1 = times[k - 1], times[k]
-            ids1 = np.fromiter(snaps[k].keys(), dtype=np.int64)
-            ids0 = np.fromiter(snaps[k - 1].keys(), dtype=np.int64)
-            common, i1, i0 = np.intersect1d(ids1, ids0, return_indices=True)
-            if not len(common):
-                continue
-            v1 = np.array(list(snaps[k].values()))[i1]
-            v0 = np.array(list(snaps[k - 1].values()))[i0]
-            mine = v1[:, 1] == ln.id
-            y0, y1 = v0[mine, 0], v1[mine, 0]
-            ys = y0[:, None] + (y1 - y0)[:, None] * sub[None, :]
-            ts = t0 + (t1 - t0) * sub
-            mid_y, mid_t = 0.5 * (ys[:, 1:] + ys[:, :-1]), 0.5 * (ts[1:] + ts[:-1])
-            inside = (mid_y >= a0) & (mid_y <= a1)
-            step_d = np.abs(np.diff(ys, axis=1))
-            for p in range(3):
-                sel = inside & ((mid_t >= p * PERIOD) & (mid_t < (p + 1) * PERIOD))[None, :]
-                dist[p] += float(step_d[sel].sum())
-                tim[p] += float(np.count_nonzero(sel) * (t1 - t0) / 10.0)
-        rows = [r for r in aggs if r["lane"] == ln.id]
-        for p, r in enumerate(rows):
-            covered = min(PERIOD, SECONDS - p * PERIOD)
-            area = (a1 - a0) / 1000.0 * covered / 3600.0
-            # sub-sampling error is one sub-step per region crossing: < 0.5 % of totals over 30 s
-            assert r["flow_vph"] == pytest.approx(dist[p] / 1000.0 / area, rel=5e-3)
-            assert r["density_vpkm"] == pytest.approx(tim[p] / 3600.0 / area, rel=5e-3)
-            assert r["flow_vph"] == pytest.approx(r["density_vpkm"] * r["speed_kmh"], rel=1e-9)
-            assert r["partial"] == (covered < PERIOD)
+        # independent Edie: sum over steps of clipped front-point motion, sampled finely
+        dist, tim = edie_totals(times, snaps, ln.id, ln.region, PERIOD, 3)
+        assert_edie_rows([r for r in aggs if r["lane"] == ln.id], dist, tim, ln.region, SECONDS, PERIOD)
 
 
 def test_occupancy_is_summed_loop_on_time(dense) -> None:

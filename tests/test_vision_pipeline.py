@@ -108,7 +108,7 @@ def crossings(seen: dict, count_y: float) -> int:
     """Vehicles whose representative point crossed count_y (their trajectory spans it)."""
     n = 0
     for states in seen.values():
-        ys = [s.y_front for s in states]
+        ys = [p[2] for s in states for p in s.trajectory or []] + [s.y_front for s in states]
         if min(ys) <= count_y <= max(ys):
             n += 1
     return n
@@ -229,3 +229,79 @@ def test_stabiliser_follows_shake_and_drift_and_notices_occlusion():
     assert max(errs) < 0.5, max(errs)
     # the occluded one is noticed, the others carry on (one more may drop out near the image edge)
     assert not stab.ok[0] and stab.n_ok >= stab.n_total - 2 and stab.n_ok >= 2
+
+
+class OccludedScene(Scene):
+    """An overhead sign hides the road beyond y = 50 m: vehicles emerge from under it."""
+
+    HIDDEN_FROM_M = 50.0
+
+    def render(self, t: float, shake: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+        vehicles, self.vehicles = self.vehicles, [v for v in self.vehicles if True]
+        try:
+            img = super().render(t, shake)
+        finally:
+            self.vehicles = vehicles
+        road_only = Scene.__new__(Scene)
+        road_only.__dict__.update(self.__dict__, vehicles=[])
+        bare = Scene.render(road_only, t, shake)
+        hidden = np.zeros_like(self.road)
+        hidden[int((self.HIDDEN_FROM_M - ROAD_Y[0]) * PX_PER_M):, :] = 255
+        M = np.array([[1, 0, shake[0]], [0, 1, shake[1]], [0, 0, 1]]) @ self.M
+        mask = cv2.warpPerspective(hidden, M, (W, H), flags=cv2.INTER_NEAREST) > 0
+        img[mask] = bare[mask]
+        return img
+
+
+def test_vehicle_emerging_from_occlusion_is_backfilled_to_the_region_entry(site):
+    pipe = VisionPipeline(site)
+    sc = OccludedScene(4)
+    sc.add_vehicle(-1.75, 90.0, 4.5, -20.0)  # crosses the region's far end (75 m) at 0.75 s, seen from 50 m
+    finished, seen = run(pipe, sc, 4.6)
+    assert len(finished) == 1
+    first = next(s for s in seen[finished[0].id] if s.trajectory)
+    t0, _, y0 = first.trajectory[0]
+    # the entry point is where the lane's Edie region begins (its far end, 75 m) ...
+    assert y0 == pytest.approx(75.0, abs=0.01), first.trajectory[:3]
+    # ... at the time the vehicle was there, from the speed measured after it emerged: 0.15 s is 3 m at
+    # 20 m/s (the speed over the held 0.5 s is within a few %); without the backfill the first point is
+    # where it emerged, 2 s later
+    assert abs(t0 - 0.75) < 0.15, first.trajectory[:3]
+    # every later point was observed, below the occluder
+    assert all(p[2] < OccludedScene.HIDDEN_FROM_M + 2.0 for p in first.trajectory[1:])
+
+
+def test_backfill_rules():
+    """Unit rules: clipped at the first frame; stale leading points dropped; never across the count line."""
+    from appliance.types import VehicleState
+
+    pipe = VisionPipeline(parse_site(site_dict()))
+    pipe.first_t = 0.0
+
+    def state(traj, t=1.5, y=40.0, n=6):
+        return VehicleState(id=1, t=t, x=-1.75, y_front=y, y_rear=y + 4.5, vx=0.0, vy=-20.0, length=4.5,
+                            n_features=n, trajectory=list(traj))
+
+    v = state([(1.0, -1.75, 50.0)])
+    pipe._backfill(v)
+    # entry (75 m) would be at -0.25 s, before the first frame: the point at 0 s instead, 20 m further
+    assert v.trajectory[0] == pytest.approx((0.0, -1.75, 70.0))
+    pipe.first_t = -5.0
+    v = state([(-3.0, -1.75, 51.0), (1.0, -1.75, 50.0)])  # 4 s for 1 m at 20 m/s: a static leftover
+    pipe._backfill(v)
+    assert v.trajectory[0] == pytest.approx((-0.25, -1.75, 75.0)) and len(v.trajectory) == 2
+    v = state([(1.0, -1.75, 28.0)], y=20.0)  # first seen past the count line (30 m): left as it is
+    pipe._backfill(v)
+    assert v.trajectory == [(1.0, -1.75, 28.0)]
+    v = state([(1.0, -1.75, 50.0)], n=2)  # a fragment
+    pipe._backfill(v)
+    assert v.trajectory == [(1.0, -1.75, 50.0)]
+
+
+def test_stabilise_model_other_than_translation_is_refused():
+    from appliance.config import ConfigError
+
+    d = site_dict()
+    d["tracking"] = {"stabilise_model": "similarity"}
+    with pytest.raises(ConfigError, match="stabilise_model"):
+        parse_site(d)

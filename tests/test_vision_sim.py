@@ -9,6 +9,7 @@ from __future__ import annotations
 import csv
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -30,7 +31,10 @@ def pipeline_counts(site: SiteConfig, frames) -> tuple[dict[int, int], VisionPip
     seen: dict[int, list] = {}
     for k, t, img in frames:
         for s in pipe.step(Frame(seq=k, t=t, wall=1767225600.0 + t, image=img)):
-            seen.setdefault(s.id, []).append(s)
+            states = seen.setdefault(s.id, [])
+            for pt, px, py in s.trajectory or []:  # the points before a vehicle's first report
+                states.append(SimpleNamespace(t=pt, x=px, y_front=py))
+            states.append(s)
     counts = {}
     for lane in site.lanes:
         xs = [p[0] for p in lane.polygon_m]

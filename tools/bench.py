@@ -125,7 +125,8 @@ def warm_warmup_s() -> float:
 @click.option("--preset", "presets", multiple=True, type=click.Choice(list(PRESETS)), help="Scenes (default both).")
 @click.option("--json", "json_out", type=click.Path(dir_okay=False), default=None, help="Also write results as JSON.")
 @click.option("--no-compile", is_flag=True, help="Skip the cold numba compile measurement.")
-def bench(seconds, seed, core, sizes, presets, json_out, no_compile) -> None:
+def bench(seconds: float, seed: int, core: int | None, sizes: tuple[str, ...], presets: tuple[str, ...],
+          json_out: str | None, no_compile: bool) -> None:
     if seconds <= 0:
         raise click.BadParameter("must be positive", param_hint="--seconds")
     allowed = sorted(os.sched_getaffinity(0))

@@ -277,8 +277,8 @@ def format_count_report(cmp: CountComparison) -> str:
 @click.option("--errors-png", type=click.Path(dir_okay=False), default=None, help="Table-1 error distribution PNG")
 @click.option("--time-space", "ts_png", type=click.Path(dir_okay=False), default=None,
               help="time-space diagram PNG (Fig. 6)")
-def evaluate(results_path, truth_dir, counts_path, tolerance, complete_only, frame_range, plot_png, errors_png,
-             ts_png) -> None:
+def evaluate(results_path: str, truth_dir: str | None, counts_path: str | None, tolerance: int, complete_only: bool,
+             frame_range: str | None, plot_png: str | None, errors_png: str | None, ts_png: str | None) -> None:
     """Compare replay results with simulator truth (--truth) or a hand count (--counts)."""
     if (truth_dir is None) == (counts_path is None):
         raise click.UsageError("give exactly one of --truth DIR or --counts counts.json")

@@ -200,7 +200,7 @@ CROSSING_COLUMNS = ["vehicle_id", "lane", "frame", "t", "wall", "speed_kmh", "le
 
 
 def write_results(res: ReplayResult, out: str, vehicles: bool) -> list[str]:
-    """Write periods (and crossings; loop events and vehicles when asked) to .sqlite or .csv files."""
+    """Write periods, crossings and loop events (and vehicles when asked) to .sqlite or .csv files."""
     p = Path(out)
     written = []
     if p.suffix.lower() == ".csv":
@@ -217,8 +217,9 @@ def write_results(res: ReplayResult, out: str, vehicles: bool) -> list[str]:
 
         dump(p, [a.to_dict() for a in res.periods])
         dump(p.with_name(p.stem + "_crossings.csv"), [{c: r[c] for c in CROSSING_COLUMNS} for r in res.crossings])
+        # loop events are the emulated detectors' output: always written (evaluate compares them)
+        dump(p.with_name(p.stem + "_loop_events.csv"), [e.to_dict() for e in res.loop_events])
         if vehicles:
-            dump(p.with_name(p.stem + "_loop_events.csv"), [e.to_dict() for e in res.loop_events])
             dump(p.with_name(p.stem + "_vehicles.csv"), [r.to_dict() for r in res.vehicles])
         return written
     from appliance.store import Store
@@ -231,8 +232,8 @@ def write_results(res: ReplayResult, out: str, vehicles: bool) -> list[str]:
             tbl.delete_where()
         tbl.insert_all([{c: r[c] for c in CROSSING_COLUMNS} for r in res.crossings],
                        columns={c: (int if c in ("vehicle_id", "lane", "frame") else float) for c in CROSSING_COLUMNS})
+        store.write_loop_events(res.loop_events)
         if vehicles:
-            store.write_loop_events(res.loop_events)
             store.write_vehicles(res.vehicles, trajectories=True)
     finally:
         store.close()
@@ -273,7 +274,7 @@ def source_video(site: SiteConfig) -> str:
 @click.option("--config", "config_path", required=True, type=click.Path(dir_okay=False), help="Site TOML.")
 @click.option("--fps", type=float, default=None, help="Frame rate; overrides the file's clock. Image sequences carry none: default source.fps.")
 @click.option("--out", type=click.Path(dir_okay=False), default=None, help="results.sqlite or results.csv")
-@click.option("--vehicles", is_flag=True, help="Also write loop events and per-vehicle records.")
+@click.option("--vehicles", is_flag=True, help="Also write per-vehicle records (with trajectories).")
 @click.option("--annotate", type=click.Path(dir_okay=False), default=None, help="Write an annotated video (mp4).")
 @click.option("--snapshots", type=click.Path(file_okay=False), default=None, help="Write annotated PNGs here.")
 @click.option("--start", default=None, help="Wall time of the first frame, ISO 8601 (default 2026-01-01T00:00:00Z).")
@@ -281,7 +282,9 @@ def source_video(site: SiteConfig) -> str:
 @click.option("--truth-tracks", type=click.Path(file_okay=False), default=None,
               help="Instead of a video: the simulator truth DIR's exact trajectories (a perfect tracker), "
                    "to separate measurement from tracking errors.")
-def replay(video, config_path, fps, out, vehicles, annotate, snapshots, start, max_frames, truth_tracks) -> None:
+def replay(video: str | None, config_path: str, fps: float | None, out: str | None, vehicles: bool,
+           annotate: str | None, snapshots: str | None, start: str | None, max_frames: int | None,
+           truth_tracks: str | None) -> None:
     """Run the pipeline on VIDEO (a file, or an image pattern like input/in%06d.jpg) as fast as it can.
 
     Without VIDEO the config's own file source is used (e.g. a site made by site-from-counts).

@@ -75,8 +75,10 @@ def _zones_px(raw: dict, H) -> list[np.ndarray]:
 @click.option("--reload/--no-reload", default=True, show_default=True, help="With --write: reload the running service.")
 @url_option
 @click.option("--json", "as_json", is_flag=True, help="Print the result as JSON.")
-def calibrate(config_path, points_file, points, lane_lines, lane_width, first_line_x, snapshot, grid_out,
-              grid_step, grid_x, grid_y, write, force, reload, url, as_json) -> None:
+def calibrate(config_path: str, points_file: str | None, points: tuple[str, ...], lane_lines: tuple[str, ...],
+              lane_width: float | None, first_line_x: float, snapshot: str | None, grid_out: str | None,
+              grid_step: tuple[float, float], grid_x: tuple[float, float] | None, grid_y: tuple[float, float] | None,
+              write: bool, force: bool, reload: bool, url: str | None, as_json: bool) -> None:
     """Fit the image -> road homography, report the error in metres per point, draw a grid.
 
     Road metres: X across the road (growing to the right in the image), Y along the road

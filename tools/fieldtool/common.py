@@ -9,6 +9,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 
 import click
+import numpy as np
 
 from appliance.config import DEFAULT_CONFIG_PATH, ConfigError, SiteConfig, SourceConfig, load_site, parse_site
 
@@ -95,7 +96,7 @@ def atomic_write(path: str | Path, data: bytes | str) -> None:
         os.close(dfd)
 
 
-def write_png(path: str | Path, image) -> None:
+def write_png(path: str | Path, image: np.ndarray) -> None:
     """Encode an image as PNG and write it atomically."""
     import cv2
 
@@ -134,7 +135,7 @@ def parse_when(text: str) -> float:
 class When(click.ParamType):
     name = "TIME"
 
-    def convert(self, value, param, ctx):
+    def convert(self, value: str | float, param: click.Parameter | None, ctx: click.Context | None) -> float:
         if isinstance(value, float):
             return value
         try:
@@ -156,8 +157,8 @@ def service_url(url: str | None, config_path: str | None) -> str:
         try:
             st = tomllib.loads(Path(config_path).read_text(encoding="utf-8")).get("status", {})
             host, port = st.get("host", host), int(st.get("port", port))
-        except (OSError, tomllib.TOMLDecodeError, ValueError, TypeError):
-            pass
+        except (OSError, tomllib.TOMLDecodeError, ValueError, TypeError) as e:
+            click.echo(f"warning: {config_path}: cannot read [status] ({e}); trying {host}:{port}", err=True)
     if host in ("0.0.0.0", "", "::"):
         host = "127.0.0.1"
     return f"http://{host}:{port}"

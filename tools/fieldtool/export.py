@@ -10,13 +10,14 @@ import time
 
 import click
 
+from appliance.store import Store
 from tools.fieldtool.common import When, config_option, iso, write_file
 from tools.fieldtool.storeaccess import open_readonly, store_path
 
 TIME_COLUMNS = {"periods": "period_start", "loop-events": "wall_on", "vehicles": "wall_exit", "health": "wall"}
 
 
-def fetch(store, what: str, t0: float, t1: float, lane: int | None, trajectories: bool = False) -> list[dict]:
+def fetch(store: Store, what: str, t0: float, t1: float, lane: int | None, trajectories: bool = False) -> list[dict]:
     """Rows of one table for [t0, t1), optionally one lane, with ISO 8601 copies of the times
     (``<column>_utc``)."""
     if what == "periods":
@@ -59,7 +60,8 @@ def to_csv(rows: list[dict]) -> str:
 @click.option("--out", "-o", type=click.Path(dir_okay=False), default=None, help="File to write (default: stdout).")
 @click.option("--db", type=click.Path(dir_okay=False), default=None, help="Store file (default: the config's store.path).")
 @config_option
-def export(t_from, t_to, lane, what, fmt, trajectories, out, db, config_path) -> None:
+def export(t_from: float, t_to: float | None, lane: int | None, what: str, fmt: str, trajectories: bool,
+           out: str | None, db: str | None, config_path: str) -> None:
     """Export 5-minute periods, loop events, vehicles or health events from the store (read-only).
 
     Times select period_start (periods), wall_on (loop events), wall_exit (vehicles) or the

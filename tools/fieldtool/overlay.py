@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from numpy.typing import ArrayLike
 
 from appliance.config import SiteConfig, clip_polygon_y
 from appliance.geometry import Homography
 
+# BGR, as cv2 uses them; docs/field-guide.md lists them for installers
 COLOURS: dict[str, tuple[int, int, int]] = {
     "lane": (0, 200, 0),
     "detection": (0, 220, 255),
@@ -134,7 +136,7 @@ def _in_front(H: Homography, pts_m: np.ndarray) -> np.ndarray:
     return w > 1e-9
 
 
-def grid_lines_m(x_range, y_range, step_x: float = 1.0, step_y: float = 5.0) -> tuple[np.ndarray, np.ndarray]:
+def grid_lines_m(x_range: tuple[float, float], y_range: tuple[float, float], step_x: float = 1.0, step_y: float = 5.0) -> tuple[np.ndarray, np.ndarray]:
     """Positions of the grid lines: X values (along-road lines) and Y values (cross-road lines)."""
     xs = np.arange(np.floor(x_range[0] / step_x) * step_x, x_range[1] + 1e-9, step_x)
     ys = np.arange(np.floor(y_range[0] / step_y) * step_y, y_range[1] + 1e-9, step_y)
@@ -185,7 +187,7 @@ def draw_grid(
     return img
 
 
-def draw_calibration_points(image: np.ndarray, image_px, errors_m) -> np.ndarray:
+def draw_calibration_points(image: np.ndarray, image_px: ArrayLike, errors_m: ArrayLike) -> np.ndarray:
     """Calibration points as circles labelled with their reprojection error in metres."""
     img = to_bgr(image)
     for (u, v), e in zip(np.asarray(image_px, dtype=float), np.asarray(errors_m, dtype=float)):

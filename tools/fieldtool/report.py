@@ -204,7 +204,8 @@ def plot_time_space(vehicles: list[dict], title: str, path: Path, t_start: float
 @click.option("--ts-from", type=When(), default=None, help="Start of the time-space window (default: --from).")
 @click.option("--db", type=click.Path(dir_okay=False), default=None, help="Store file (default: the config's store.path).")
 @config_option
-def report(t_from, t_to, out_dir, lane, ts_seconds, ts_from, db, config_path) -> None:
+def report(t_from: float, t_to: float, out_dir: str, lane: int | None, ts_seconds: float, ts_from: float | None,
+           db: str | None, config_path: str) -> None:
     """Plot flow/speed/occupancy per lane over time and a time-space diagram of trajectories.
 
     Writes OUT/flow_speed_occupancy.png, OUT/counts_by_class.png and, when trajectories

@@ -7,6 +7,7 @@ import importlib
 import logging
 import threading
 from pathlib import Path
+from typing import Callable
 
 import click
 import cv2
@@ -120,7 +121,7 @@ def _grab_cv2(cfg: SiteConfig, skip: int) -> np.ndarray:
         cap.release()
 
 
-def base_image(cfg: SiteConfig, snapshot: str | None, warn=click.echo) -> np.ndarray:
+def base_image(cfg: SiteConfig, snapshot: str | None, warn: Callable[[str], object] = click.echo) -> np.ndarray:
     """The picture to draw on: a snapshot file, else a frame from the source, else flat grey."""
     if snapshot:
         img = cv2.imread(snapshot, cv2.IMREAD_COLOR)

@@ -173,8 +173,11 @@ def _range(value: tuple[float, float] | None) -> list[float] | None:
 @click.option("--region-y", type=(float, float), default=None, help="Edie measurement region Y0 Y1 (m).")
 @click.option("--count-y", type=float, default=None, help="Count position Y (m).")
 @_edit_options
-def lane_cmd(lane_id, direction, polygon_px, polygon_m, detection_y, exit_y, detection_rows, exit_rows, region_y,
-             count_y, config_path, url, reload, snapshot, render_png, out_config) -> None:
+def lane_cmd(lane_id: int, direction: str | None, polygon_px: str | None, polygon_m: str | None,
+             detection_y: tuple[float, float] | None, exit_y: tuple[float, float] | None,
+             detection_rows: tuple[float, float] | None, exit_rows: tuple[float, float] | None,
+             region_y: tuple[float, float] | None, count_y: float | None, config_path: str, url: str | None,
+             reload: bool, snapshot: str | None, render_png: str | None, out_config: str | None) -> None:
     """Add lane LANE_ID or change what is given of it.
 
     \b
@@ -220,8 +223,10 @@ def lane_cmd(lane_id, direction, polygon_px, polygon_m, detection_y, exit_y, det
 @click.option("--mode", type=click.Choice(["presence", "pulse"]))
 @click.option("--trap-with", help="Id of the second loop of a speed trap.")
 @_edit_options
-def loop_cmd(loop_id, lane, channel, y_m, length_m, polygon_px, polygon_m, mode, trap_with,
-             config_path, url, reload, snapshot, render_png, out_config) -> None:
+def loop_cmd(loop_id: str, lane: int | None, channel: int | None, y_m: float | None, length_m: float | None,
+             polygon_px: str | None, polygon_m: str | None, mode: str | None, trap_with: str | None, config_path: str,
+             url: str | None, reload: bool, snapshot: str | None, render_png: str | None,
+             out_config: str | None) -> None:
     """Add loop LOOP_ID or change it (lane, channel, position, mode, speed trap).
 
     \b
@@ -263,7 +268,8 @@ def loop_cmd(loop_id, lane, channel, y_m, length_m, polygon_px, polygon_m, mode,
 @click.argument("points", nargs=-1)
 @click.option("--add", is_flag=True, help="Append to the list instead of replacing it.")
 @_edit_options
-def fiducials_cmd(points, add, config_path, url, reload, snapshot, render_png, out_config) -> None:
+def fiducials_cmd(points: tuple[str, ...], add: bool, config_path: str, url: str | None, reload: bool,
+                  snapshot: str | None, render_png: str | None, out_config: str | None) -> None:
     """Set the fiducial points (image pixels 'u,v'; static, textured, off the road); none = clear.
 
     \b
@@ -280,7 +286,8 @@ def fiducials_cmd(points, add, config_path, url, reload, snapshot, render_png, o
 @click.argument("kind", type=click.Choice(["lane", "loop"]))
 @click.argument("ident")
 @_edit_options
-def remove_cmd(kind, ident, config_path, url, reload, snapshot, render_png, out_config) -> None:
+def remove_cmd(kind: str, ident: str, config_path: str, url: str | None, reload: bool, snapshot: str | None,
+               render_png: str | None, out_config: str | None) -> None:
     """Remove a lane (by id) or a loop (by id). A lane's loops must be removed first.
 
     \b
@@ -304,7 +311,7 @@ def remove_cmd(kind, ident, config_path, url, reload, snapshot, render_png, out_
 @click.option("--from-service", is_flag=True, help="Draw on the running service's latest frame.")
 @url_option
 @click.option("--out", "-o", type=click.Path(dir_okay=False), default="zones.png", show_default=True)
-def render_cmd(config_path, snapshot, from_service, url, out) -> None:
+def render_cmd(config_path: str, snapshot: str | None, from_service: bool, url: str | None, out: str) -> None:
     """Draw lanes, zones, loops (with channels) and fiducials over the snapshot.
 
     \b
@@ -334,7 +341,7 @@ def render_cmd(config_path, snapshot, from_service, url, out) -> None:
 
 @zones.command("check")
 @config_option
-def check_cmd(config_path) -> None:
+def check_cmd(config_path: str) -> None:
     """Validate the zones (inside the image, loops inside lanes, channels unique) and list them.
 
     \b

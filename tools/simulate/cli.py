@@ -51,8 +51,11 @@ def _preset_help() -> str:
 @click.option("--png-every", type=click.FloatRange(min=0), default=0.0, metavar="SECONDS",
               help="Also save a PNG frame every SECONDS to OUT/frames/ (0 = none).")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar.")
-def simulate(preset, seed, seconds, out, width, height, fps, lanes, receding_lanes, curve_radius, demand,
-             demand_profile, cam_height, tilt, pan, focal, repeat_frames, drop_frames, jitter_ms, crf, png_every, quiet) -> None:
+def simulate(preset: str, seed: int, seconds: float, out: Path, width: int, height: int, fps: float, lanes: int | None,
+             receding_lanes: int | None, curve_radius: float | None, demand: float | None, demand_profile: str | None,
+             cam_height: float | None, tilt: float | None, pan: float | None, focal: float | None,
+             repeat_frames: int | None, drop_frames: float | None, jitter_ms: float | None, crf: int | None,
+             png_every: float, quiet: bool) -> None:
     from tools.simulate.scenario import render_scenario
 
     profile = None

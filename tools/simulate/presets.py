@@ -109,7 +109,7 @@ _OVERRIDES: dict[str, dict] = {
 }
 
 
-def scene_params(preset: str, **overrides) -> SceneParams:
+def scene_params(preset: str, **overrides: object) -> SceneParams:
     """The parameters of a preset with keyword overrides applied; unknown names raise ValueError."""
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; choose one of: {', '.join(PRESETS)}")

@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 Y_FAR = 320.0  # approaching traffic enters here (beyond what the camera resolves)
 Y_BEHIND = -30.0  # and leaves here (behind the camera); receding traffic runs the other way
@@ -33,7 +34,7 @@ class Lane:
     def y_end(self) -> float:
         return Y_BEHIND if self.direction < 0 else Y_FAR
 
-    def y_of(self, s: np.ndarray | float):
+    def y_of(self, s: np.ndarray | float) -> np.ndarray | float:
         """Road Y of along-lane position s (metres travelled from the lane's entry)."""
         return self.y_start + self.direction * s
 
@@ -54,7 +55,7 @@ class RoadLayout:
     def curved(self) -> bool:
         return self.radius_m != 0.0
 
-    def centre_x(self, y):
+    def centre_x(self, y: ArrayLike) -> np.ndarray:
         """Lateral shift of the road at along-road position Y: Y^2 / 2R, the parabola of a circle of radius R
         tangent to the Y axis at Y = 0 (within 0.1 % of the circle's offset for Y < R / 20)."""
         if not self.curved:
@@ -62,13 +63,13 @@ class RoadLayout:
         y = np.asarray(y, dtype=np.float64)
         return y * y / (2.0 * self.radius_m)
 
-    def slope(self, y):
+    def slope(self, y: ArrayLike) -> np.ndarray:
         """dX/dY of the road at Y (the tangent of the heading angle)."""
         if not self.curved:
             return np.zeros_like(np.asarray(y, dtype=np.float64))
         return np.asarray(y, dtype=np.float64) / self.radius_m
 
-    def to_road(self, x, y) -> np.ndarray:
+    def to_road(self, x: ArrayLike, y: ArrayLike) -> np.ndarray:
         """(N, 2) road X/Y of lateral positions x (straight frame) at along-road positions y."""
         x, y = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
         return np.column_stack([(x + self.centre_x(y)).ravel(), y.ravel()])

@@ -80,7 +80,7 @@ def capture_times(seconds: float, content_fps: float, jitter_ms: float, rng: np.
 
 def render_scenario(preset: str, seed: int, seconds: float, out_dir: Path, *, width: int = 640, height: int = 480,
                     fps: float = 25.0, progress: bool = False, png_every_s: float = 0.0,
-                    **overrides) -> "ScenarioOutput":
+                    **overrides: object) -> "ScenarioOutput":
     """Render `seconds` of a preset scene with its exact truth into out_dir (created if missing).
 
     png_every_s > 0 also saves out_dir/frames/frame_NNNNNN.png every that many seconds (for looking at).

@@ -30,7 +30,7 @@ class Scene:
     """Build with a preset name and seed; then alternate `step(dt)` and `render()`."""
 
     def __init__(self, preset: str, seed: int, *, width: int = 640, height: int = 480, fps: float = 25.0,
-                 period_s: float = 300.0, truth: bool = True, **overrides):
+                 period_s: float = 300.0, truth: bool = True, **overrides: object):
         self.preset, self.seed, self.fps = preset, int(seed), float(fps)
         self.keep_truth = truth
         if width < 64 or height < 48:

@@ -35,7 +35,7 @@ class SceneStream:
 
 
 def site_config_dict(preset: str, seed: int = 1, *, width: int = 640, height: int = 480, fps: float = 25.0,
-                     url: str | None = None, scene: Scene | None = None, **overrides) -> dict:
+                     url: str | None = None, scene: Scene | None = None, **overrides: object) -> dict:
     """The site config dict (appliance.config format) for a preset's camera; url defaults to synthetic:PRESET?seed=N."""
     if scene is None:
         scene = Scene(preset, seed, width=width, height=height, fps=fps, **overrides)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 
 from tools.simulate.presets import SceneParams
@@ -15,7 +17,8 @@ LC_SPEED = 1.1  # lateral speed during a lane change (m/s)
 class Traffic:
     """All vehicles as arrays; `step(dt)` advances them. Positions s are metres along the lane direction."""
 
-    def __init__(self, params: SceneParams, layout: RoadLayout, rng: np.random.Generator, shape_factory):
+    def __init__(self, params: SceneParams, layout: RoadLayout, rng: np.random.Generator,
+                 shape_factory: Callable[[str, int], Shape]):
         self.p, self.layout, self.rng = params, layout, rng
         self.shape_factory = shape_factory  # (cls, direction) -> Shape
         self.t = 0.0

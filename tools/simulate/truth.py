@@ -58,7 +58,9 @@ class StepState:
     span_prev: np.ndarray | None = None
 
 
-def length_class(length: float, bounds=(2.1, 6.1, 13.1), names=("motorcycle", "small", "medium", "large")) -> str:
+def length_class(length: float, bounds: tuple[float, ...] = (2.1, 6.1, 13.1),
+                 names: tuple[str, ...] = ("motorcycle", "small", "medium", "large")) -> str:
+    """The name of length's class: names[i] for bounds[i-1] <= length < bounds[i]."""
     return names[int(np.searchsorted(np.asarray(bounds), length, side="right"))]
 
 
