@@ -30,6 +30,9 @@ GHOST_S = 2.0
 RECHECK_S = 1.5  # a reported group is re-checked for being a fragment of another vehicle this long
 RECHECK_VOTES = 10  # ... and joins a vehicle only after matching it in this many consecutive frames
 RECHECK_DRIFT_M = 1.5  # ... at a steady place on it (this much drift: a separate vehicle overtaking)
+# ... as an elevated part at least this much faster (roof fragments: 1.15-1.5; a receding vehicle's speed
+# may read a few per cent low, and a level part is a queued car's business)
+RECHECK_K_MIN = 1.12
 MAX_HEIGHT_M = 4.5  # the tallest vehicle: bounds the height magnification of a fragment
 SPEED_WINDOW_S = 0.5  # speeds compared for the height magnification are averaged over this long
 
@@ -134,6 +137,7 @@ class VehicleTrack:
     x_hi: float = 0.0
     last: VehicleState | None = None
     report_t: float = 0.0
+    n_now: int = 0
     own_length: float = 0.0  # the group's length before fragments joined it
     merged: bool = False
     votes: tuple[int, int, float] = (0, 0, 0.0)  # (candidate host, consecutive frames it matched, place on it)
@@ -234,6 +238,7 @@ class Grouper:
                 tr = VehicleTrack(id=vid, first_t=t, lane_index=li)
                 self.tracks[vid] = tr
             tr.frames += 1
+            tr.n_now = len(members)
             tr.n_max = max(tr.n_max, len(members))
             if not tr.reported and tr.n_max < p.min_features:
                 if not tr.trajectory:  # too small to be a vehicle yet: only remember where it started
@@ -348,14 +353,16 @@ class Grouper:
                 continue
             if not other.reported and (other.first_t > tr.first_t or other.n_max < tr.n_max):
                 continue
+            if not tr.reported and other.n_now < tr.n_now:
+                continue  # a new group is a part of a larger one, not the other way round
             if tr.reported and (not other.reported or other.report_t > tr.report_t):
                 continue  # a reported vehicle only joins one reported before it
             ov = other.mean_vy(o.vy) if tr.reported else o.vy
             if ov * vy <= 0:
                 continue
             k = vy / ov
-            if not (1.05 if tr.reported else 0.85) <= k <= self.k_max:
-                continue  # a reported group only joins as an elevated part (level ones would be queued cars)
+            if not (RECHECK_K_MIN if tr.reported else 0.85) <= k <= self.k_max:
+                continue
             gx, gy = st.x, y
             m = FRAGMENT_X_MARGIN_M
             if k > 1.05:

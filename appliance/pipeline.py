@@ -1,6 +1,7 @@
 """The vision pipeline: repeated-frame check, stabilisation, corner detection, tracking, grouping.
 
-One ``step`` per frame returns the vehicles in view (provisional) and those finalised this frame.
+One ``step`` per frame returns the vehicles in view (provisional) and those finalised this frame; a new
+vehicle's first report is held back HOLD_S and carries its trajectory back to its lane's region entry.
 """
 
 from __future__ import annotations
@@ -185,7 +186,12 @@ class VisionPipeline:
                 self._backfill(v, held)
                 out.append(v)
         for vid in [vid for vid in self.held if vid not in seen]:
-            del self.held[vid]  # merged into another vehicle (or dropped) before its first report
+            # gone (merged into another vehicle, or lost) while held: its points go out as observed,
+            # without a backfill, so that a line it crossed meanwhile still counts
+            held = self.held.pop(vid)
+            last = held[-1]
+            last.trajectory = list(held[0].trajectory or []) + [(h.t, h.x, h.y_front) for h in held[:-1]]
+            out.append(last)
         return out
 
     def _group_speed(self, vid: int) -> float:

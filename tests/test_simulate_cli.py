@@ -115,17 +115,18 @@ def test_demo_site_is_the_demo_scene() -> None:
     assert t1 - t0 == pytest.approx(0.04)
 
 
-def test_help_lists_presets_and_bad_input_is_named() -> None:
+def test_help_lists_presets_and_bad_input_is_named(tmp_path: Path) -> None:
     from click.testing import CliRunner
 
     from tools.simulate.cli import simulate
 
     r = CliRunner().invoke(simulate, ["--help"])
     assert r.exit_code == 0 and all(name in r.output for name in PRESETS)
-    r = CliRunner().invoke(simulate, ["--preset", "sunny", "--out", "x"])
+    # outputs under tmp_path: should the input check ever fail, nothing lands in the working directory
+    r = CliRunner().invoke(simulate, ["--preset", "sunny", "--out", str(tmp_path / "x")])
     assert r.exit_code == 2 and "sunny" in r.output
     with pytest.raises(ValueError, match="unknown scene parameter 'lanez'"):
-        render_scenario("demo", 1, 1.0, Path("unused"), lanez=3)
+        render_scenario("demo", 1, 1.0, tmp_path / "unused", lanez=3)
 
 
 def test_same_seed_gives_identical_truth_files(tmp_path: Path) -> None:

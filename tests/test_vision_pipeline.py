@@ -237,14 +237,12 @@ class OccludedScene(Scene):
     HIDDEN_FROM_M = 50.0
 
     def render(self, t: float, shake: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
-        vehicles, self.vehicles = self.vehicles, [v for v in self.vehicles if True]
+        img = super().render(t, shake)
+        vehicles, self.vehicles = self.vehicles, []
         try:
-            img = super().render(t, shake)
+            bare = super().render(t, shake)
         finally:
             self.vehicles = vehicles
-        road_only = Scene.__new__(Scene)
-        road_only.__dict__.update(self.__dict__, vehicles=[])
-        bare = Scene.render(road_only, t, shake)
         hidden = np.zeros_like(self.road)
         hidden[int((self.HIDDEN_FROM_M - ROAD_Y[0]) * PX_PER_M):, :] = 255
         M = np.array([[1, 0, shake[0]], [0, 1, shake[1]], [0, 0, 1]]) @ self.M
