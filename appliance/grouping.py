@@ -33,6 +33,10 @@ RECHECK_DRIFT_M = 1.5  # ... at a steady place on it (this much drift: a separat
 # ... as an elevated part at least this much faster (roof fragments: 1.15-1.5; a receding vehicle's speed
 # may read a few per cent low, and a level part is a queued car's business)
 RECHECK_K_MIN = 1.12
+STEADY_POINTS = 12  # ... or at once when over this many common frames it kept its place on the vehicle
+STEADY_RANGE_M = 1.0
+STEADY_MAX_FEATURES = 5  # ... for a small group (a roof edge); a larger one could be a car overtaking
+STEADY_K_MIN = 1.15  # (roof fragments; below this a car in the next lane is hard to tell from a part)  # ... within this much (a separate vehicle at another speed drifts more)
 MAX_HEIGHT_M = 4.5  # the tallest vehicle: bounds the height magnification of a fragment
 SPEED_WINDOW_S = 0.5  # speeds compared for the height magnification are averaged over this long
 
@@ -303,7 +307,7 @@ class Grouper:
                 self.tracks.pop(tr.id)
                 retire.append(members)
                 continue
-            if host is not None and tr.reported:
+            if host is not None and tr.reported and not self._steady(tr, self.tracks[host]):
                 off = self._place
                 same = tr.votes[0] == host and abs(off - tr.votes[2]) <= RECHECK_DRIFT_M
                 n = tr.votes[1] + 1 if same else 1
@@ -376,6 +380,26 @@ class Grouper:
                 self._place = gy - o.y_front  # where on the vehicle the group lies
                 return vid
         return None
+
+    def _steady(self, tr: VehicleTrack, host: VehicleTrack) -> bool:
+        """Whether tr's near end kept one place on host over their last STEADY_POINTS common frames once
+        the height magnification (fitted over those frames) is undone: the mark of a part of it."""
+        if self.foot is None or tr.n_max > STEADY_MAX_FEATURES or host.n_max < tr.n_max:
+            return False  # the part is a small group
+        hy = {pt[0]: pt[2] for pt in host.trajectory[-3 * STEADY_POINTS:]}
+        common = [(t, y, hy[t]) for t, _, y in tr.trajectory[-3 * STEADY_POINTS:] if t in hy][-STEADY_POINTS:]
+        if len(common) < STEADY_POINTS:
+            return False
+        f = self.foot[1]
+        a = np.array(common)
+        dh = a[-1, 2] - a[0, 2]
+        if abs(dh) < 1.0:
+            return False
+        k = (a[-1, 1] - a[0, 1]) / dh
+        if not STEADY_K_MIN <= k <= self.k_max:
+            return False
+        place = f + (a[:, 1] - f) / k - a[:, 2]
+        return float(place.max() - place.min()) <= STEADY_RANGE_M
 
     def _link(self, a: np.ndarray, b: np.ndarray) -> None:
         """Join features a to the vehicle of features b for good."""

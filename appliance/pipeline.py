@@ -7,6 +7,7 @@ vehicle's first report is held back HOLD_S and carries its trajectory back to it
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -30,13 +31,13 @@ LK_LEVELS = 3
 LK_MARGIN_PX = 64  # crop margin around new corners for the initial-velocity flow (> motion per frame)
 STALE_GAP_S = 0.5  # a leading trajectory point this much older than the next one ...
 STALE_SPEED_SHARE = 0.5  # ... and reached at less than this share of the vehicle's speed is dropped
-BACKFILL_MIN_SPEED = 1.0
+BACKFILL_MIN_SPEED = 1.0  # m/s: slower vehicles are not extrapolated back to the region entry
 BACKFILL_MIN_FEATURES = 4  # groups with fewer features when released are not extended (fragments)
 # A newly reported vehicle is held back this long (capture seconds) before its first report goes out, so
 # its speed is measured over its own points before its trajectory is extended back to the region entry,
 # and a group that merges into another meanwhile never reaches the measures.
 HOLD_S = 0.5
-HOLD_MIN_TRAVEL_M = 3.0  # ... and until it has moved this far (an occluder's edge where vehicles emerge does not)  # m/s: slower vehicles are not extrapolated back to the region entry
+HOLD_MIN_TRAVEL_M = 3.0  # ... and until it has moved this far (an occluder's edge where vehicles emerge does not)
 
 
 class VisionPipeline:
@@ -124,7 +125,8 @@ class VisionPipeline:
             repeated = frame.repeated or peak <= REPEAT_MAX_DIFF
             if repeated or (self.prev_t is not None and frame.t <= self.prev_t):
                 st["repeated_frames"] += 1
-                return [v for v in self.last_states if not v.finished]
+                # the same vehicles again, without the trajectories that went out with them already
+                return [replace(v, trajectory=None) for v in self.last_states if not v.finished]
         self.prev_grid = grid.copy()
         dt = 0.0 if self.prev_t is None else frame.t - self.prev_t
         self.prev_t = frame.t
@@ -186,10 +188,13 @@ class VisionPipeline:
                 self._backfill(v, held)
                 out.append(v)
         for vid in [vid for vid in self.held if vid not in seen]:
-            # gone (merged into another vehicle, or lost) while held: its points go out as observed,
-            # without a backfill, so that a line it crossed meanwhile still counts
+            # gone (merged into another vehicle, or lost) while held: if it moved, its points go out as
+            # observed, without a backfill, so that a line it crossed meanwhile still counts; a group that
+            # never moved (features stuck on an occluder's edge where vehicles emerge) is dropped
             held = self.held.pop(vid)
             last = held[-1]
+            if abs(last.y_front - held[0].y_front) < HOLD_MIN_TRAVEL_M:
+                continue
             last.trajectory = list(held[0].trajectory or []) + [(h.t, h.x, h.y_front) for h in held[:-1]]
             out.append(last)
         return out

@@ -91,6 +91,7 @@ class SiteZones:
             poly_px = H.road_to_img(poly)
             count_y = float(lane.count_y_m) if lane.count_y_m is not None else 0.5 * (ylo + yhi)
             det, ext = _default_ranges(H, poly_px, ylo, yhi, sign, count_y)
+            region = (float(lane.region_y_m[0]), float(lane.region_y_m[1])) if lane.region_y_m else (ylo, yhi)
             if lane.detection_y_m is not None:
                 det = (float(lane.detection_y_m[0]), float(lane.detection_y_m[1]))
             if lane.exit_y_m is not None:
@@ -105,7 +106,7 @@ class SiteZones:
                     detection_y=det,
                     exit_y=ext,
                     count_y=count_y,
-                    region_y=(float(lane.region_y_m[0]), float(lane.region_y_m[1])) if lane.region_y_m else (ylo, yhi),
+                    region_y=region,
                     polygon_px=poly_px,
                     detection_px=_poly_px(H, poly, *det),
                     exit_px=_poly_px(H, poly, *ext),

@@ -25,8 +25,8 @@ def roadwatch(*args: str, cwd: Path) -> str:
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory) -> Path:
-    d = tmp_path_factory.mktemp("loops") / "dense"
-    roadwatch("simulate", "--preset", "dense", "--seed", "23", "--seconds", "10", "--out", str(d), "-q",
+    d = tmp_path_factory.mktemp("loops") / "free-flow"
+    roadwatch("simulate", "--preset", "free-flow", "--seed", "23", "--seconds", "20", "--out", str(d), "-q",
               cwd=Path(__file__).resolve().parent.parent)
     return d
 
@@ -54,9 +54,9 @@ def test_plain_replay_writes_loop_events(scene, tmp_path, suffix):
         for r in csv.DictReader(open(tmp_path / "r_loop_events.csv")):
             got[int(r["channel"])] = got.get(int(r["channel"]), 0) + 1
     want = _truth_per_channel(scene)
-    assert sum(want.values()) >= 6  # a dense 10 s scene puts several vehicles over each loop
-    # a perfect tracker's actuations equal the truth's; 1 per channel allows a vehicle on a loop at the
-    # clip's end (the truth closes it, the replay's last frame may not)
+    assert sum(want.values()) >= 4  # 20 s of free flow puts a few vehicles over each loop
+    # separate vehicles (free flow) through a perfect tracker give the truth's actuations; 1 per channel
+    # allows a vehicle on a loop at the clip's end (the truth closes it, the replay's last frame may not)
     for ch, n in want.items():
         assert abs(got.get(ch, 0) - n) <= 1, (got, want)
     report = roadwatch("evaluate", "--truth", str(scene / "truth"), "--results", str(out), cwd=repo)

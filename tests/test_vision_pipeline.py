@@ -303,3 +303,32 @@ def test_stabilise_model_other_than_translation_is_refused():
     d["tracking"] = {"stabilise_model": "similarity"}
     with pytest.raises(ConfigError, match="stabilise_model"):
         parse_site(d)
+
+
+def test_hold_releases_moving_vehicles_and_drops_stuck_groups():
+    from appliance.pipeline import HOLD_S
+    from appliance.types import VehicleState
+
+    pipe = VisionPipeline(parse_site(site_dict()))
+    pipe.first_t = 0.0
+
+    def st(vid, t, y, first=False):
+        return VehicleState(id=vid, t=t, x=-1.75, y_front=y, y_rear=y + 4.5, vx=0.0, vy=-20.0, length=4.5,
+                            n_features=6, trajectory=[(t - 0.2, -1.75, y + 4.0)] if first else None)
+
+    out = []
+    for k in range(20):
+        t = 1.0 + 0.04 * k
+        states = [st(1, t, 60.0 - 20.0 * (t - 1.0), first=k == 0)]  # a vehicle at 20 m/s
+        if k < 5:
+            states.append(st(2, t, 62.0, first=k == 0))  # a group stuck on an occluder's edge, then gone
+        out.append(pipe._hold_new(states))
+    released = [v for frame in out for v in frame]
+    assert all(v.id == 1 for v in released)  # the stuck group never reaches the measures
+    first = released[0]
+    # held for HOLD_S, then one report carrying the held points, backfilled to the region's far end (75 m)
+    assert first.t - 1.0 == pytest.approx(HOLD_S, abs=0.05)
+    assert first.trajectory[0][2] == pytest.approx(75.0)
+    assert [p[0] for p in first.trajectory] == sorted(p[0] for p in first.trajectory)
+    assert len(first.trajectory) >= HOLD_S / 0.04
+    assert all(v.trajectory is None for v in released[1:])
