@@ -2,6 +2,8 @@
 
 A pair is linked when first seen together within the connection distance and dismissed when
 its distance range over the common interval exceeds the segmentation threshold (TI/Beymer style).
+A new group that is part of a known vehicle (its roof, projected further and faster) joins it; a
+reported one is watched for RECHECK_S more and joins once it keeps one place on a vehicle.
 """
 
 from __future__ import annotations
@@ -33,10 +35,6 @@ RECHECK_DRIFT_M = 1.5  # ... at a steady place on it (this much drift: a separat
 # ... as an elevated part at least this much faster (roof fragments: 1.15-1.5; a receding vehicle's speed
 # may read a few per cent low, and a level part is a queued car's business)
 RECHECK_K_MIN = 1.12
-STEADY_POINTS = 12  # ... or at once when over this many common frames it kept its place on the vehicle
-STEADY_RANGE_M = 1.0
-STEADY_MAX_FEATURES = 5  # ... for a small group (a roof edge); a larger one could be a car overtaking
-STEADY_K_MIN = 1.15  # (roof fragments; below this a car in the next lane is hard to tell from a part)  # ... within this much (a separate vehicle at another speed drifts more)
 MAX_HEIGHT_M = 4.5  # the tallest vehicle: bounds the height magnification of a fragment
 SPEED_WINDOW_S = 0.5  # speeds compared for the height magnification are averaged over this long
 
@@ -307,7 +305,7 @@ class Grouper:
                 self.tracks.pop(tr.id)
                 retire.append(members)
                 continue
-            if host is not None and tr.reported and not self._steady(tr, self.tracks[host]):
+            if host is not None and tr.reported:
                 off = self._place
                 same = tr.votes[0] == host and abs(off - tr.votes[2]) <= RECHECK_DRIFT_M
                 n = tr.votes[1] + 1 if same else 1
@@ -336,7 +334,8 @@ class Grouper:
     def _host_of(self, tr: VehicleTrack, st: VehicleState, sign: int) -> int | None:  # noqa: C901
         """A reported vehicle that this new group is a part of: after undoing the height magnification
         (its projected speed over the vehicle's, k >= 1) the group's near end falls inside the vehicle's
-        footprint. Tall vehicles' tops seen in the next lane, or behind them, are such fragments."""
+        footprint. Tall vehicles' tops seen in the next lane, or behind them, are such fragments. Sets
+        self._place (where on the host the group lies) for the caller's steadiness votes."""
         y = tr.trajectory[-1][2]
         # a reported group's speed over a while (steadier); a new one has only its features' speeds
         vy = tr.mean_vy(st.vy) if tr.reported else st.vy
@@ -380,26 +379,6 @@ class Grouper:
                 self._place = gy - o.y_front  # where on the vehicle the group lies
                 return vid
         return None
-
-    def _steady(self, tr: VehicleTrack, host: VehicleTrack) -> bool:
-        """Whether tr's near end kept one place on host over their last STEADY_POINTS common frames once
-        the height magnification (fitted over those frames) is undone: the mark of a part of it."""
-        if self.foot is None or tr.n_max > STEADY_MAX_FEATURES or host.n_max < tr.n_max:
-            return False  # the part is a small group
-        hy = {pt[0]: pt[2] for pt in host.trajectory[-3 * STEADY_POINTS:]}
-        common = [(t, y, hy[t]) for t, _, y in tr.trajectory[-3 * STEADY_POINTS:] if t in hy][-STEADY_POINTS:]
-        if len(common) < STEADY_POINTS:
-            return False
-        f = self.foot[1]
-        a = np.array(common)
-        dh = a[-1, 2] - a[0, 2]
-        if abs(dh) < 1.0:
-            return False
-        k = (a[-1, 1] - a[0, 1]) / dh
-        if not STEADY_K_MIN <= k <= self.k_max:
-            return False
-        place = f + (a[:, 1] - f) / k - a[:, 2]
-        return float(place.max() - place.min()) <= STEADY_RANGE_M
 
     def _link(self, a: np.ndarray, b: np.ndarray) -> None:
         """Join features a to the vehicle of features b for good."""
