@@ -186,8 +186,9 @@ class Service:
             "fps": round(self.fps, 2),
             "dropped_frames": self.dropped,
             "frames": self.frames,
-            "faults": self.health.names(),
-            "fault_bits": self.health.bits,
+            # faults and channels from the same published snapshot, so they never disagree
+            "faults": [f.name for f in HealthFault if snap.has_fault(f)] if snap else self.health.names(),
+            "fault_bits": snap.faults if snap else self.health.bits,
             "tracked_vehicles": self.tracked,
             "period_seq": self.period_seq,
             "channels": [asdict(c) for c in (snap.channels if snap else [])],

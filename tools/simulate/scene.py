@@ -290,6 +290,8 @@ class Scene:
             vy1 = np.maximum.reduceat(cpx[:, 1], starts)
             in_front = (np.minimum.reduceat(cdep, starts) > 0.5).tolist()
             hull_pts = np.round(cpx * 8).astype(np.int32)  # half resolution, 4 bits subpixel
+        else:  # an empty road: no vehicle boxes
+            vx0 = vx1 = vy0 = vy1 = np.zeros(0)
         if len(idx) and len(self.objects):
             ob = self._obj_box
             hit = ((vx1[:, None] >= ob[None, :, 0]) & (vx0[:, None] <= ob[None, :, 2])
