@@ -38,6 +38,8 @@ BACKFILL_MIN_FEATURES = 4  # groups with fewer features when released are not ex
 # and a group that merges into another meanwhile never reaches the measures.
 HOLD_S = 0.5
 HOLD_MIN_TRAVEL_M = 3.0  # ... and until it has moved this far (an occluder's edge where vehicles emerge does not)
+ALIGN_MIN_PX = 0.5  # camera shifts between frames below this leave the previous frame as it is (resampling
+# it would only blur it; a still camera's stabiliser jitters by a few hundredths of a pixel)
 
 
 class VisionPipeline:
@@ -60,6 +62,7 @@ class VisionPipeline:
         self.first_t: float | None = None
         self.held: dict[int, list[VehicleState]] = {}  # vehicle id -> its states since its first report  # capture time of the first frame (backfill never goes before it)
         self.offset = (0.0, 0.0)
+        self.prev_offset = (0.0, 0.0)  # the stabiliser's offset at self.prev
         self.last_states: list[VehicleState] = []
         self.stats: dict = {
             "frames": 0, "features": 0, "vehicles": 0, "finished": 0, "shake_px": (0.0, 0.0),
@@ -135,6 +138,7 @@ class VisionPipeline:
         tm = self.timings
 
         c0 = time.perf_counter()
+        self.prev_offset = self.offset
         self.offset = self.stabiliser.step(img)
         c1 = time.perf_counter()
         tr = self.tracker
@@ -264,6 +268,17 @@ class VisionPipeline:
         if len(drop):
             tr.kill(drop)
 
+    def _aligned_prev(self) -> np.ndarray:
+        """The previous frame moved by the camera's shift since then, so that static scenery lines up with the
+        current frame: the motion mask then sees vehicles only (not every edge the shake moved) and the new
+        corners' initial velocities carry no camera motion."""
+        d = (self.offset[0] - self.prev_offset[0], self.offset[1] - self.prev_offset[1])
+        if abs(d[0]) < ALIGN_MIN_PX and abs(d[1]) < ALIGN_MIN_PX:
+            return self.prev
+        M = np.float32([[1, 0, d[0]], [0, 1, d[1]]])
+        return cv2.warpAffine(self.prev, M, (self.width, self.height), flags=cv2.INTER_LINEAR,
+                              borderMode=cv2.BORDER_REPLICATE)
+
     def _detect(self, img: np.ndarray, dt: float, t: float) -> None:
         tr = self.tracker
         live = tr.live()
@@ -271,7 +286,8 @@ class VisionPipeline:
         if free <= 0:
             return
         shift = (int(round(self.offset[0])), int(round(self.offset[1])))
-        pts = self.detector.detect(img, self.prev, tr.px[live], shift)[:free]
+        prev = self._aligned_prev()
+        pts = self.detector.detect(img, prev, tr.px[live], shift)[:free]
         if not len(pts):
             return
         # where each new corner was one frame earlier (pyramidal LK), for its initial velocity
@@ -282,7 +298,7 @@ class VisionPipeline:
         x1, y1 = min(w, int(pts[:, 0].max()) + m + 1), min(h, int(pts[:, 1].max()) + m + 1)
         p0 = (pts - [x0, y0]).astype(np.float32).reshape(-1, 1, 2)
         prev_pts, status, _ = cv2.calcOpticalFlowPyrLK(
-            img[y0:y1, x0:x1], self.prev[y0:y1, x0:x1], p0, None, winSize=LK_WIN, maxLevel=LK_LEVELS)
+            img[y0:y1, x0:x1], prev[y0:y1, x0:x1], p0, None, winSize=LK_WIN, maxLevel=LK_LEVELS)
         ok = status.reshape(-1).astype(bool)
         pts, prev_pts = pts[ok], prev_pts.reshape(-1, 2)[ok].astype(np.float64) + [x0, y0]
         ref = pts - np.asarray(self.offset)
