@@ -37,6 +37,15 @@ RECHECK_DRIFT_M = 1.5  # ... at a steady place on it (this much drift: a separat
 RECHECK_K_MIN = 1.12
 MAX_HEIGHT_M = 4.5  # the tallest vehicle: bounds the height magnification of a fragment
 SPEED_WINDOW_S = 0.5  # speeds compared for the height magnification are averaged over this long
+# A receding vehicle enters large at the image bottom: when it straddles two lanes (changing lanes) or its
+# shadow or flank falls in the next lane, the features born there carry that lane's label and form a group
+# of their own. A new group in a neighbouring
+# lane of the same direction is such a side part when it moves with the vehicle, its near end is level
+# with the vehicle's, and together they are no wider than one vehicle with its shadow:
+SIDE_SPEED_TOL = 0.1  # relative speed difference
+SIDE_DY_M = 2.0  # near ends this close along the road
+SIDE_GAP_M = 0.5  # lateral gap between the two footprints
+SIDE_MAX_WIDTH_M = 3.5  # joint footprint width (two cars side by side span >= 5 m: lane 3.5 + car 1.7)
 
 
 @njit(cache=True)
@@ -142,6 +151,7 @@ class VehicleTrack:
     n_now: int = 0
     own_length: float = 0.0  # the group's length before fragments joined it
     merged: bool = False
+    side: bool = False  # a part in the next lane joined it: its place across the road is its low features' median
     votes: tuple[int, int, float] = (0, 0, 0.0)  # (candidate host, consecutive frames it matched, place on it)
     trajectory: list[tuple[float, float, float]] = field(default_factory=list)
 
@@ -173,6 +183,7 @@ class Grouper:
         self.next_vid = 1
         self.finished_total = 0
         self._place = 0.0
+        self._side = False
         self.recent: list[tuple[VehicleState, float, float]] = []  # finished vehicles, for their leftovers
         cam = zones.camera  # (X, Y, height) of the camera, or None
         # only a plausible pole or overpass camera is used to undo the height magnification
@@ -277,13 +288,16 @@ class Grouper:
             # of the vehicle; higher features move faster in the road projection)
             vx = float(np.median(s[near_v, 2])) if len(near_v) else float(s[rep, 2])
             vy = vy_near
+            low = members[np.abs(ys - s[rep, 1]) < NEAR_REP_M]  # the low part: the footprint across the road
+            tr.x_lo, tr.x_hi = float(s[low, 0].min()), float(s[low, 0].max())
+            x = float(s[rep, 0])
+            if tr.side:
+                x = float(np.median(s[low, 0]))
             st = VehicleState(
-                id=vid, t=t, x=float(s[rep, 0]), y_front=front, y_rear=rear, vx=vx,
+                id=vid, t=t, x=x, y_front=front, y_rear=rear, vx=vx,
                 vy=vy, length=length, n_features=int(len(members)),
             )
             tr.last = st
-            low = members[np.abs(ys - s[rep, 1]) < NEAR_REP_M]  # the low part: the footprint across the road
-            tr.x_lo, tr.x_hi = float(s[low, 0].min()), float(s[low, 0].max())
             if not tr.merged:
                 tr.own_length = length
             tr.trajectory.append((t, st.x, rep_y))
@@ -319,6 +333,8 @@ class Grouper:
                 self._link(members, groups[host])
                 self.fvid[members] = host
                 self.tracks[host].merged = True
+                if self._side:
+                    self.tracks[host].side = True
                 self.tracks.pop(tr.id)
                 continue
             if not tr.reported:
@@ -339,6 +355,7 @@ class Grouper:
         y = tr.trajectory[-1][2]
         # a reported group's speed over a while (steadier); a new one has only its features' speeds
         vy = tr.mean_vy(st.vy) if tr.reported else st.vy
+        self._side = False
         self.recent = [r for r in self.recent if st.t - r[0].t <= GHOST_S]
         for o, x_lo, x_hi in [] if tr.reported else self.recent:
             if o.vy * vy <= 0 or not 0.85 <= vy / o.vy <= 2.5:
@@ -350,6 +367,11 @@ class Grouper:
             m = FRAGMENT_X_MARGIN_NO_CAMERA_M if vy / o.vy > 1.05 else FRAGMENT_X_MARGIN_M
             if lo <= y <= hi and x_lo - m <= st.x <= x_hi + m:
                 return GHOST
+        if not tr.reported and sign > 0:
+            side = self._side_host(tr, st, y, vy)
+            if side is not None:
+                self._side = True
+                return side
         for vid, other in self.tracks.items():
             o = other.last
             if vid == tr.id or o is None or o.t != st.t or o.vy * vy <= 0:
@@ -377,6 +399,25 @@ class Grouper:
             lo, hi = _extent(o, other.own_length)
             if lo <= gy <= hi and other.x_lo - m <= gx <= other.x_hi + m:
                 self._place = gy - o.y_front  # where on the vehicle the group lies
+                return vid
+        return None
+
+    def _side_host(self, tr: VehicleTrack, st: VehicleState, y: float, vy: float) -> int | None:
+        """A vehicle in a neighbouring lane of the same direction whose side part (shadow, flank) this new
+        group is: same speed, near ends level, joint footprint no wider than one vehicle."""
+        for vid, other in self.tracks.items():
+            o = other.last
+            if vid == tr.id or o is None or o.t != st.t or other.lane_index == tr.lane_index:
+                continue
+            if abs(other.lane_index - tr.lane_index) != 1 or o.vy * vy <= 0:
+                continue
+            if not other.reported and (other.first_t > tr.first_t or other.n_max < self.p.min_features):
+                continue
+            if abs(vy / o.vy - 1.0) > SIDE_SPEED_TOL or abs(other.trajectory[-1][2] - y) > SIDE_DY_M:
+                continue
+            gap = max(tr.x_lo - other.x_hi, other.x_lo - tr.x_hi)
+            width = max(tr.x_hi, other.x_hi) - min(tr.x_lo, other.x_lo)
+            if gap <= SIDE_GAP_M and width <= SIDE_MAX_WIDTH_M:
                 return vid
         return None
 
