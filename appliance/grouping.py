@@ -22,6 +22,11 @@ NEAR_REP_M = 3.0  # features this close along the road to the representative one
 MAX_LEAD_M = 1.5  # how far the reported near end may run ahead of the lowest feature
 MIN_TRAVEL_M = 1.0  # a group is reported once it has moved this far (static texture never does)
 MIN_SPEED_MPS = 1.5  # ... and is moving at least this fast (vehicles are found while they move)
+# A group not yet reported that has stood still this long (within STILL_M) starts its trajectory afresh:
+# features on an occluder's edge where vehicles emerge, joined by the vehicle once it comes out, must not
+# date the vehicle's entry back to when the edge was first seen
+STILL_S = 0.4
+STILL_M = 0.5
 # A new group is a fragment of a known vehicle (its elevated top or its rear, seen as a separate group)
 # when, after undoing the height magnification, its near end lies in that vehicle's footprint:
 FRAGMENT_X_MARGIN_M = 0.5  # lateral slack around the footprint
@@ -184,6 +189,7 @@ class Grouper:
         self.finished_total = 0
         self._place = 0.0
         self._side = False
+        self.merged_now: set[int] = set()
         self.recent: list[tuple[VehicleState, float, float]] = []  # finished vehicles, for their leftovers
         cam = zones.camera  # (X, Y, height) of the camera, or None
         # only a plausible pole or overpass camera is used to undo the height magnification
@@ -233,6 +239,7 @@ class Grouper:
         out: list[VehicleState] = []
         groups: dict[int, np.ndarray] = {}
         pending: list = []
+        self.merged_now: set[int] = set()  # groups that turned out to be parts of another vehicle this step
         if len(live):
             pair_update(live, s, lane, self.state, self.rng, self.y0, p.connection_lateral_m, p.connection_m,
                         p.segmentation_lateral_m, p.segmentation_m, p.segmentation_per_m)
@@ -301,6 +308,9 @@ class Grouper:
             if not tr.merged:
                 tr.own_length = length
             tr.trajectory.append((t, st.x, rep_y))
+            if not tr.reported and abs(rep_y - tr.start_y) < STILL_M and t - tr.trajectory[0][0] >= STILL_S:
+                tr.trajectory = tr.trajectory[-1:]
+                tr.start_y = rep_y
             moved = abs(rep_y - tr.start_y) >= MIN_TRAVEL_M and abs(vy) >= MIN_SPEED_MPS
             if lz is not None and lz.in_exit(float(s[rep, 1])):
                 self.tracks.pop(vid)
@@ -316,6 +326,7 @@ class Grouper:
         for tr, st, sign, members, length in pending:
             host = self._host_of(tr, st, sign)
             if host == GHOST:  # the rest of a vehicle already finalised: retire it quietly
+                self.merged_now.add(tr.id)
                 self.tracks.pop(tr.id)
                 retire.append(members)
                 continue
@@ -335,6 +346,7 @@ class Grouper:
                 self.tracks[host].merged = True
                 if self._side:
                     self.tracks[host].side = True
+                self.merged_now.add(tr.id)
                 self.tracks.pop(tr.id)
                 continue
             if not tr.reported:

@@ -196,6 +196,8 @@ class VisionPipeline:
             # observed, without a backfill, so that a line it crossed meanwhile still counts; a group that
             # never moved (features stuck on an occluder's edge where vehicles emerge) is dropped
             held = self.held.pop(vid)
+            if vid in self.grouper.merged_now:
+                continue  # a part of another vehicle: never a vehicle of its own
             last = held[-1]
             if abs(last.y_front - held[0].y_front) < HOLD_MIN_TRAVEL_M:
                 continue

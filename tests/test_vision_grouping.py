@@ -74,3 +74,35 @@ def test_roof_fragment_joins_its_truck_but_a_faster_car_stays_apart():
     # so is a car queued 6 m behind the truck at its speed (closer than connection_m the pair graph joins them)
     queued = (_box(0.6, 2.4, 60.0, 64.5, 8, 4), -15.0, 2, 12, 0.0)
     assert _counted(_run([truck, queued])) == 2
+
+
+def test_a_group_standing_still_before_it_moves_dates_its_trajectory_from_the_move():
+    """Features on an occluder's edge where vehicles emerge stand still until the vehicle comes out and
+    carries the group on: the reported trajectory must not start when the edge was first seen (that
+    would put the vehicle in the Edie region for seconds it was not there)."""
+    from appliance.grouping import STILL_S
+
+    site = parse_site(site_dict())
+    g = Grouper(site.tracking, SiteZones(site))
+    n = site.tracking.max_features
+    s, px = np.zeros((n, 4)), np.zeros((n, 2))
+    lane, alive, age = np.zeros(n, np.int32), np.zeros(n, np.bool_), np.zeros(n, np.int32)
+    pts = _box(0.6, 2.4, 60.0, 64.0, 8, 5)
+    move_t = 1.2
+    g.reset_slots(np.arange(len(pts)))
+    first_report = None
+    for f in range(80):
+        t = f * DT
+        dy = -10.0 * max(0.0, t - move_t)
+        vy = -10.0 if t > move_t else 0.0
+        for i, (x, y) in enumerate(pts):
+            s[i] = (x, y + dy, 0.0, vy)
+            px[i] = (x, -(y + dy))
+            lane[i], alive[i], age[i] = 2, True, f
+        states, _ = g.step(t, s, px, lane, alive, age)
+        for st in states:
+            if st.trajectory and first_report is None:
+                first_report = st
+    assert first_report is not None, "the moving group is never reported"
+    t0 = first_report.trajectory[0][0]
+    assert t0 >= move_t - STILL_S - DT, f"trajectory starts at {t0:.2f} s, the group moved at {move_t} s"

@@ -332,3 +332,25 @@ def test_hold_releases_moving_vehicles_and_drops_stuck_groups():
     assert [p[0] for p in first.trajectory] == sorted(p[0] for p in first.trajectory)
     assert len(first.trajectory) >= HOLD_S / 0.04
     assert all(v.trajectory is None for v in released[1:])
+
+
+def test_a_held_group_that_joins_another_vehicle_is_never_released():
+    """A group the grouper joins to another vehicle while its first report is held (a tall vehicle's top,
+    a side part) is not a vehicle: unlike a held group that is merely lost, none of its points go out."""
+    from appliance.types import VehicleState
+
+    def run(merged: bool) -> list[int]:
+        pipe = VisionPipeline(parse_site(site_dict()))
+        pipe.first_t = 0.0
+        released = []
+        for k in range(8):
+            t = 1.0 + 0.04 * k
+            y = 60.0 - 20.0 * (t - 1.0)
+            states = [VehicleState(id=2, t=t, x=-1.75, y_front=y, y_rear=y + 4.5, vx=0.0, vy=-20.0, length=4.5,
+                                   n_features=6, trajectory=[(t - 0.2, -1.75, y + 4.0)] if k == 0 else None)] if k < 6 else []
+            pipe.grouper.merged_now = {2} if merged and k == 6 else set()
+            released += [v.id for v in pipe._hold_new(states)]
+        return released
+
+    assert run(merged=False) == [2]  # lost after moving 4 m while held: its points still go out
+    assert run(merged=True) == []
