@@ -189,7 +189,7 @@ class Grouper:
         self.finished_total = 0
         self._place = 0.0
         self._side = False
-        self.merged_now: set[int] = set()
+        self.merged_now: set[int] = set()  # groups joined to another vehicle in the last step (for the pipeline's hold)
         self.recent: list[tuple[VehicleState, float, float]] = []  # finished vehicles, for their leftovers
         cam = zones.camera  # (X, Y, height) of the camera, or None
         # only a plausible pole or overpass camera is used to undo the height magnification
@@ -239,7 +239,7 @@ class Grouper:
         out: list[VehicleState] = []
         groups: dict[int, np.ndarray] = {}
         pending: list = []
-        self.merged_now: set[int] = set()  # groups that turned out to be parts of another vehicle this step
+        self.merged_now = set()
         if len(live):
             pair_update(live, s, lane, self.state, self.rng, self.y0, p.connection_lateral_m, p.connection_m,
                         p.segmentation_lateral_m, p.segmentation_m, p.segmentation_per_m)
@@ -435,10 +435,7 @@ class Grouper:
 
     def _link(self, a: np.ndarray, b: np.ndarray) -> None:
         """Join features a to the vehicle of features b for good."""
-        for i in a:
-            for j in b:
-                i2, j2 = (i, j) if i < j else (j, i)
-                self.state[i2, j2] = MERGED
+        self.state[np.minimum.outer(a, b), np.maximum.outer(a, b)] = MERGED  # pairs kept as (lower, higher) slot
 
     def _qualifies_on_loss(self, tr: VehicleTrack) -> bool:
         """A vehicle whose features were all lost still counts if it left the detection zone."""
