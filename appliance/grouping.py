@@ -8,7 +8,7 @@ reported one is watched for RECHECK_S more and joins once it keeps one place on 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numba import njit
@@ -42,6 +42,12 @@ RECHECK_DRIFT_M = 1.5  # ... at a steady place on it (this much drift: a separat
 RECHECK_K_MIN = 1.12
 MAX_HEIGHT_M = 4.5  # the tallest vehicle: bounds the height magnification of a fragment
 SPEED_WINDOW_S = 0.5  # speeds compared for the height magnification are averaged over this long
+GROUND_LEN_FRAMES = 15  # reported length: median of the height-corrected lengths of this many frames,
+# those when the vehicle was nearest the camera (an error in k costs the more the further away it is)
+# The far end seen is a roofline, not the bumper: a car's windscreen top lies about a third of its length
+# behind its front (the bonnet is hidden from behind), its rear window's top about a sixth ahead of its rear.
+HIDDEN_SHARE_FRONT = 0.3
+HIDDEN_SHARE_REAR = 0.15
 # A receding vehicle enters large at the image bottom: when it straddles two lanes (changing lanes) or its
 # shadow or flank falls in the next lane, the features born there carry that lane's label and form a group
 # of their own. A new group in a neighbouring
@@ -138,6 +144,10 @@ def _extent(o: VehicleState, length: float | None = None) -> tuple[float, float]
     return min(o.y_front, rear) - 1.0, max(o.y_front, rear) + 1.0
 
 
+def _median_length(samples: list[tuple[float, float]], default: float | None) -> float | None:
+    return float(np.median([g for _, g in samples])) if samples else default
+
+
 @dataclass
 class VehicleTrack:
     """Bookkeeping of one vehicle hypothesis across frames."""
@@ -158,6 +168,8 @@ class VehicleTrack:
     merged: bool = False
     side: bool = False  # a part in the next lane joined it: its place across the road is its low features' median
     votes: tuple[int, int, float] = (0, 0, 0.0)  # (candidate host, consecutive frames it matched, place on it)
+    ground_lens: list[tuple[float, float]] = field(default_factory=list)  # (distance, height-corrected length)
+    ground: tuple[float, float] | None = None  # reported length and far end on the road
     trajectory: list[tuple[float, float, float]] = field(default_factory=list)
 
     def mean_vy(self, fallback: float) -> float:
@@ -238,6 +250,7 @@ class Grouper:
         retire: list[np.ndarray] = []
         out: list[VehicleState] = []
         groups: dict[int, np.ndarray] = {}
+        ground: dict[int, tuple[float, float] | None] = {}
         pending: list = []
         self.merged_now = set()
         if len(live):
@@ -286,11 +299,15 @@ class Grouper:
                     rep_y = max(prev, min(max(rep_y, ahead), rep_y + MAX_LEAD_M))
             else:
                 tr.start_y = rep_y
+            g = self._ground_length(tr, members, ys, s[rep, 1], vy_near, age, s[:, 3], length)
             if sign < 0:
                 front, rear = rep_y, rep_y + length
+                tr.ground = (g, rep_y + g)
             else:  # the front of a receding vehicle is its far end: keep it monotone too
                 front = rep_y + length if tr.last is None else max(rep_y + length, tr.last.y_front)
                 rear = rep_y
+                tr.ground = (g, max(rep_y + g, tr.ground[1]) if tr.ground else rep_y + g)
+            ground[vid] = tr.ground
             # velocity: median over the settled features near the representative one (the lowest part
             # of the vehicle; higher features move faster in the road projection)
             vx = float(np.median(s[near_v, 2])) if len(near_v) else float(s[rep, 2])
@@ -353,11 +370,41 @@ class Grouper:
                 tr.reported = True
                 tr.report_t = st.t
                 # the earlier near-end points, so that lines crossed before this report still count
-                ahead = 0.0 if sign < 0 else length
+                ahead = 0.0 if sign < 0 else tr.ground[0]
                 st.trajectory = [(pt, px_, py + ahead) for pt, px_, py in tr.trajectory[:-1]] or None
             out.append(st)
         slots = np.concatenate(retire) if retire else np.zeros(0, np.int64)
-        return out, slots
+        return [self._grounded(st, ground.get(st.id)) for st in out], slots
+
+    def _ground_length(self, tr: VehicleTrack, members: np.ndarray, ys: np.ndarray, near_y: float, vy_near: float,
+                       age: np.ndarray, vy: np.ndarray, length: float) -> float:
+        """The vehicle's length on the road: the group's far end is usually a roofline, projected beyond the
+        vehicle by k = its projected speed over the near end's. Undoing k (camera known) gives the roofline's
+        place over the road; the part of the vehicle hidden beyond it is added as a share of the length."""
+        if self.foot is None or abs(vy_near) < MIN_SPEED_MPS or length <= 0 or tr.lane_index <= 0:
+            return length
+        far_y = float(ys.max())
+        far = members[(far_y - ys < NEAR_REP_M) & (age[members] >= 3)]
+        if len(far):
+            k = min(max(float(np.median(vy[far])) / vy_near, 1.0), self.k_max)
+            cy = self.foot[1]
+            seen = max(cy + (far_y - cy) / k - float(near_y), 0.0)
+            share = HIDDEN_SHARE_FRONT if self.zones.by_index(tr.lane_index).sign > 0 else HIDDEN_SHARE_REAR
+            tr.ground_lens.append((abs(far_y - cy), min(seen / (1.0 - share), length)))
+            if len(tr.ground_lens) > GROUND_LEN_FRAMES:
+                tr.ground_lens.remove(max(tr.ground_lens))
+        return _median_length(tr.ground_lens, length)
+
+    @staticmethod
+    def _grounded(st: VehicleState, ground: tuple[float, float] | None) -> VehicleState:
+        """The reported copy of a state: its far end and length on the road (the tracker keeps the
+        features' span for judging fragments)."""
+        if ground is None:
+            return st
+        g, far = ground
+        if st.y_front >= st.y_rear:
+            return replace(st, y_front=far, length=g)
+        return replace(st, y_rear=far, length=g)
 
     def _host_of(self, tr: VehicleTrack, st: VehicleState, sign: int) -> int | None:  # noqa: C901
         """A reported vehicle that this new group is a part of: after undoing the height magnification
@@ -450,7 +497,4 @@ class Grouper:
         st = tr.last
         self.finished_total += 1
         self.recent.append((st, tr.x_lo, tr.x_hi))
-        return VehicleState(
-            id=st.id, t=st.t, x=st.x, y_front=st.y_front, y_rear=st.y_rear, vx=st.vx, vy=st.vy,
-            length=st.length, n_features=st.n_features, finished=True,
-        )
+        return self._grounded(replace(st, finished=True, trajectory=None), tr.ground)

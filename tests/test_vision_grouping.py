@@ -106,3 +106,22 @@ def test_a_group_standing_still_before_it_moves_dates_its_trajectory_from_the_mo
     assert first_report is not None, "the moving group is never reported"
     t0 = first_report.trajectory[0][0]
     assert t0 >= move_t - STILL_S - DT, f"trajectory starts at {t0:.2f} s, the group moved at {move_t} s"
+
+
+def test_reported_length_is_the_vehicle_on_the_road_not_its_roof_projected_beyond_it():
+    """A car's roofline, projected onto the road, lies metres beyond the car and runs ahead of it; the
+    reported length undoes that (from the roof's speed over the near end's) and is the car's length."""
+    front, length = 44.0, 4.5
+    body = (_box(-2.6, -0.9, front, front + 1.2, 10, 5), -15.0, 1, 0, 0.0)  # bonnet and bumper, low
+    cabin = (_box(-2.5, -1.0, front + 0.32 * length, front + 0.84 * length, 10, 6), -15.0, 1, 0, 1.45)
+    seen = _run([body, cabin], frames=60)
+    zones = SiteZones(parse_site(site_dict()))
+    cy, ch = zones.camera[1], zones.camera[2]
+    states = [st for ss in seen.values() for st in ss if not st.finished and st.y_front < 40.0]
+    assert states, seen
+    raw = cy + ch / (ch - 1.45) * (front + 0.84 * length - cy) - front  # the features' span at the start
+    assert raw > length + 1.5, raw  # so the test can tell the two apart
+    lengths = np.array([st.length for st in states])
+    assert np.all(np.abs(lengths - length) < 0.8), lengths
+    # the far end moves with the vehicle: the rear is the front plus that length
+    assert np.all(np.abs(np.array([st.y_rear - st.y_front for st in states]) - lengths) < 1e-6)

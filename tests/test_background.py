@@ -1,0 +1,53 @@
+"""The road background model and its shadow test: a shadow darkens the road and keeps its texture,
+a vehicle (dark or bright) hides it."""
+
+import numpy as np
+
+from appliance.background import READY_UPDATES, UPDATE_EVERY, Background
+
+
+def _road(seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    road = 120 + rng.normal(0, 14, (120, 160))
+    return np.clip(road, 0, 255).astype(np.uint8)
+
+
+def _learnt(road: np.ndarray, noise_seed: int = 1) -> Background:
+    bg = Background()
+    rng = np.random.default_rng(noise_seed)
+    for _ in range((READY_UPDATES + 5) * UPDATE_EVERY):
+        bg.update(np.clip(road + rng.normal(0, 2, road.shape), 0, 255).astype(np.uint8))
+    return bg
+
+
+def test_background_learns_the_empty_road_through_passing_vehicles():
+    road = _road()
+    bg = Background()
+    first = road.copy()
+    first[30:70, 40:90] = 230  # a vehicle stands in the first frame
+    bg.update(first)
+    for i in range(READY_UPDATES * UPDATE_EVERY):
+        img = road.copy()
+        x = (i * 7) % 140
+        img[80:100, x:x + 20] = 20  # vehicles pass, each pixel covered a short while
+        bg.update(img)
+    assert bg.ready
+    err = np.abs(bg.bg.astype(int) - road.astype(int))
+    assert np.median(err) <= 2 and np.percentile(err, 99) <= 12, (np.median(err), np.percentile(err, 99))
+
+
+def test_shadow_is_told_from_dark_and_bright_vehicles():
+    road = _road()
+    bg = _learnt(road)
+    pts = np.array([[50.0, 40.0], [100.0, 40.0], [50.0, 70.0], [100.0, 70.0]])
+    shadow = road.copy()
+    shadow[40:71, 50:101] = (road[40:71, 50:101] * 0.5).astype(np.uint8)
+    assert bg.is_shadow(shadow, pts)
+    dark_car = road.copy()
+    dark_car[40:71, 50:101] = 55  # as dark as the shadow on average, but no road texture
+    assert not bg.is_shadow(dark_car, pts)
+    bright_car = shadow.copy()
+    bright_car[45:60, 60:90] = 220  # a vehicle standing in the shadow
+    assert not bg.is_shadow(bright_car, pts)
+    assert not bg.is_shadow(road, pts)  # nothing there
+    assert not Background().is_shadow(shadow, pts)  # no background learnt yet: no answer
