@@ -16,7 +16,8 @@ MAX_BRIGHT_SHARE = 0.03  # a shadow brightens nothing
 MIN_DARK_SHARE = 0.15
 SHADOW_RATIO = (0.2, 0.85)  # shadow over sunlit road: the share of light the sky still gives
 MIN_TEXTURE = 4.0  # grey-level std of the road under the shadow: below it the texture test cannot tell
-MIN_TEXTURE_NCC = 0.6  # the shadowed road still correlates with the road (a dark vehicle does not)
+MIN_TEXTURE_NCC = 0.4  # the shadowed road still correlates with the road (a dark vehicle does not)
+MIN_ATTACHED_DARK = 0.6  # the image between a vehicle and its shadow is shadow too (a shadow touches its caster)
 
 
 class Background:
@@ -42,6 +43,33 @@ class Background:
     @property
     def ready(self) -> bool:
         return self.bg is not None and self.updates >= READY_UPDATES
+
+    def is_attached_shadow(self, img: np.ndarray, pts: np.ndarray, caster: np.ndarray) -> bool:
+        """True when the points pts are on a shadow that reaches the caster's points in the image: the
+        road between the two, across the rows they share, is shadowed too (two vehicles side by side
+        have sunlit road between them)."""
+        if not self.is_shadow(img, pts) or len(caster) == 0:
+            return False
+        r0 = int(max(pts[:, 1].min(), caster[:, 1].min()))
+        r1 = int(np.ceil(min(pts[:, 1].max(), caster[:, 1].max()))) + 1
+        if r1 - r0 < 1:
+            r0 = int(pts[:, 1].mean())
+            r1 = r0 + 1
+        if pts[:, 0].min() > caster[:, 0].max():
+            c0, c1 = int(np.ceil(caster[:, 0].max())), int(pts[:, 0].min())
+        elif pts[:, 0].max() < caster[:, 0].min():
+            c0, c1 = int(np.ceil(pts[:, 0].max())), int(caster[:, 0].min())
+        else:
+            return True  # they overlap across the image
+        h, w = img.shape
+        r0, r1, c0, c1 = max(r0, 0), min(r1, h), max(c0, 0), min(c1, w)
+        if c1 <= c0 or r1 <= r0:
+            return True
+        a = img[r0:r1, c0:c1].astype(np.int16)
+        b = self.bg[r0:r1, c0:c1].astype(np.int16)
+        n = a.size
+        return (np.count_nonzero(a > b + NOISE) <= MAX_BRIGHT_SHARE * n
+                and np.count_nonzero(a < b - NOISE) >= MIN_ATTACHED_DARK * n)
 
     def is_shadow(self, img: np.ndarray, pts: np.ndarray) -> bool:
         """True when the box around image points pts (n x 2, x y) differs from the road only by a shadow."""

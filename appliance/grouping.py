@@ -8,6 +8,7 @@ reported one is watched for RECHECK_S more and joins once it keeps one place on 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -57,6 +58,12 @@ SIDE_SPEED_TOL = 0.1  # relative speed difference
 SIDE_DY_M = 2.0  # near ends this close along the road
 SIDE_GAP_M = 0.5  # lateral gap between the two footprints
 SIDE_MAX_WIDTH_M = 3.5  # joint footprint width (two cars side by side span >= 5 m: lane 3.5 + car 1.7)
+# ... wider when the new group is only a shadow on the road (the image test says so): cast sideways by a
+# low sun it reaches a lane or more across, starting a little behind or ahead of the vehicle
+SHADOW_MAX_WIDTH_M = 9.0
+SHADOW_GAP_M = 4.0
+SHADOW_DY_M = 6.0
+SHADOW_SPEED_TOL = 0.25  # a new group's features have not settled to its speed yet
 
 
 @njit(cache=True)
@@ -201,6 +208,9 @@ class Grouper:
         self.finished_total = 0
         self._place = 0.0
         self._side = False
+        self._is_shadow: Callable[[np.ndarray, np.ndarray], bool] | None = None
+        self._groups: dict[int, np.ndarray] = {}
+        self._px = np.zeros((0, 2))
         self.merged_now: set[int] = set()  # groups joined to another vehicle in the last step (for the pipeline's hold)
         self.recent: list[tuple[VehicleState, float, float]] = []  # finished vehicles, for their leftovers
         cam = zones.camera  # (X, Y, height) of the camera, or None
@@ -243,9 +253,13 @@ class Grouper:
             claimed[vid] = members
         return claimed
 
-    def step(self, t: float, s: np.ndarray, px: np.ndarray, lane: np.ndarray, alive: np.ndarray, age: np.ndarray) -> tuple[list[VehicleState], np.ndarray]:
-        """Returns the vehicle states for this frame and the feature slots to retire (finalised vehicles)."""
+    def step(self, t: float, s: np.ndarray, px: np.ndarray, lane: np.ndarray, alive: np.ndarray, age: np.ndarray,
+             is_shadow: Callable[[np.ndarray, np.ndarray], bool] | None = None) -> tuple[list[VehicleState], np.ndarray]:
+        """Returns the vehicle states for this frame and the feature slots to retire (finalised vehicles).
+        is_shadow(points, caster points) tells whether image points lie on a shadow of the caster's."""
         p = self.p
+        self._is_shadow = is_shadow
+        self._px = px
         live = np.flatnonzero(alive)
         retire: list[np.ndarray] = []
         out: list[VehicleState] = []
@@ -258,6 +272,7 @@ class Grouper:
                         p.segmentation_lateral_m, p.segmentation_m, p.segmentation_per_m)
             components(live, self.state, self.labels)
             groups = self._assign_ids(live)
+        self._groups = groups
         for vid in list(self.tracks):
             if vid not in groups:
                 tr = self.tracks.pop(vid)
@@ -341,7 +356,7 @@ class Grouper:
                 pending.append((tr, st, sign, members, length))
         # fragments are judged once every vehicle of this frame is up to date
         for tr, st, sign, members, length in pending:
-            host = self._host_of(tr, st, sign)
+            host = self._host_of(tr, st, sign, members)
             if host == GHOST:  # the rest of a vehicle already finalised: retire it quietly
                 self.merged_now.add(tr.id)
                 self.tracks.pop(tr.id)
@@ -406,7 +421,7 @@ class Grouper:
             return replace(st, y_front=far, length=g)
         return replace(st, y_rear=far, length=g)
 
-    def _host_of(self, tr: VehicleTrack, st: VehicleState, sign: int) -> int | None:  # noqa: C901
+    def _host_of(self, tr: VehicleTrack, st: VehicleState, sign: int, members: np.ndarray) -> int | None:  # noqa: C901
         """A reported vehicle that this new group is a part of: after undoing the height magnification
         (its projected speed over the vehicle's, k >= 1) the group's near end falls inside the vehicle's
         footprint. Tall vehicles' tops seen in the next lane, or behind them, are such fragments. Sets
@@ -426,8 +441,8 @@ class Grouper:
             m = FRAGMENT_X_MARGIN_NO_CAMERA_M if vy / o.vy > 1.05 else FRAGMENT_X_MARGIN_M
             if lo <= y <= hi and x_lo - m <= st.x <= x_hi + m:
                 return GHOST
-        if not tr.reported and sign > 0:
-            side = self._side_host(tr, st, y, vy)
+        if not tr.reported:
+            side = self._side_host(tr, st, y, vy, members, sign)
             if side is not None:
                 self._side = True
                 return side
@@ -461,9 +476,11 @@ class Grouper:
                 return vid
         return None
 
-    def _side_host(self, tr: VehicleTrack, st: VehicleState, y: float, vy: float) -> int | None:
-        """A vehicle in a neighbouring lane of the same direction whose side part (shadow, flank) this new
-        group is: same speed, near ends level, joint footprint no wider than one vehicle."""
+    def _side_host(self, tr: VehicleTrack, st: VehicleState, y: float, vy: float, members: np.ndarray,
+                   sign: int) -> int | None:
+        """A vehicle in a neighbouring lane of the same direction whose side part this new group is: same
+        speed, near ends level, and either a receding vehicle's flank (joint footprint no wider than one
+        vehicle) or only a shadow on the road (the image says so)."""
         for vid, other in self.tracks.items():
             o = other.last
             if vid == tr.id or o is None or o.t != st.t or other.lane_index == tr.lane_index:
@@ -472,12 +489,17 @@ class Grouper:
                 continue
             if not other.reported and (other.first_t > tr.first_t or other.n_max < self.p.min_features):
                 continue
-            if abs(vy / o.vy - 1.0) > SIDE_SPEED_TOL or abs(other.trajectory[-1][2] - y) > SIDE_DY_M:
+            dy = abs(other.trajectory[-1][2] - y)
+            dv = abs(vy / o.vy - 1.0)
+            if dv > SHADOW_SPEED_TOL or dy > SHADOW_DY_M:
                 continue
             gap = max(tr.x_lo - other.x_hi, other.x_lo - tr.x_hi)
             width = max(tr.x_hi, other.x_hi) - min(tr.x_lo, other.x_lo)
-            if gap <= SIDE_GAP_M and width <= SIDE_MAX_WIDTH_M:
+            if sign > 0 and gap <= SIDE_GAP_M and width <= SIDE_MAX_WIDTH_M and dy <= SIDE_DY_M and dv <= SIDE_SPEED_TOL:
                 return vid
+            if gap <= SHADOW_GAP_M and width <= SHADOW_MAX_WIDTH_M and self._is_shadow is not None and vid in self._groups:
+                if self._is_shadow(self._px[members], self._px[self._groups[vid]]):
+                    return vid
         return None
 
     def _link(self, a: np.ndarray, b: np.ndarray) -> None:

@@ -12,6 +12,7 @@ from dataclasses import replace
 import cv2
 import numpy as np
 
+from appliance.background import Background
 from appliance.config import SiteConfig
 from appliance.corners import CornerDetector
 from appliance.grouping import Grouper
@@ -56,6 +57,7 @@ class VisionPipeline:
         self.detector = CornerDetector(p, self.zones.detection_roi, self.zones.detection_mask_roi)
         self.tracker = FeatureTracker(p, H.H, H.Hinv)
         self.grouper = Grouper(p, self.zones)
+        self.background = Background()
         self.prev: np.ndarray | None = None
         self.prev_grid: np.ndarray | None = None
         self.prev_t: float | None = None
@@ -149,7 +151,9 @@ class VisionPipeline:
         if self.prev is not None and dt > 0:
             self._detect(img, dt, frame.t)
         c3 = time.perf_counter()
-        states, retire = self.grouper.step(frame.t, tr.s, tr.px, tr.lane, tr.alive, tr.age)
+        self.background.update(img)
+        states, retire = self.grouper.step(frame.t, tr.s, tr.px, tr.lane, tr.alive, tr.age,
+                                           lambda pts, caster: self.background.is_attached_shadow(img, pts, caster))
         if len(retire):
             tr.kill(retire)
         states = self._hold_new(states)

@@ -59,11 +59,14 @@ class Scene:
         self.rng = rng
         self.vehicles: list[dict] = []
 
-    def add_vehicle(self, x: float, y_front: float, length: float, speed: float, width: float = 1.8, t0: float = 0.0) -> None:
+    def add_vehicle(self, x: float, y_front: float, length: float, speed: float, width: float = 1.8, t0: float = 0.0,
+                    shadow_m: float = 0.0) -> None:
+        """shadow_m: width of the shadow it casts on the road to its right (+x), a low sun's."""
         lp, wp = int(length * PX_PER_M), int(width * PX_PER_M)
         tex = self.rng.integers(0, 255, (max(lp // 5, 2), max(wp // 5, 2))).astype(np.uint8)
         tex = cv2.resize(tex, (wp, lp), interpolation=cv2.INTER_NEAREST)
-        self.vehicles.append({"x": x, "y": y_front, "len": length, "w": width, "v": speed, "tex": tex, "t0": t0})
+        self.vehicles.append({"x": x, "y": y_front, "len": length, "w": width, "v": speed, "tex": tex, "t0": t0,
+                              "shadow": shadow_m})
 
     def positions(self, t: float) -> list[tuple[float, float]]:
         """(x, y of the front) of each vehicle at time t."""
@@ -71,6 +74,15 @@ class Scene:
 
     def render(self, t: float, shake: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
         canvas = self.road.copy()
+        for v, (x, yf) in zip(self.vehicles, self.positions(t)):
+            if v["shadow"] > 0:
+                y0 = yf if v["v"] < 0 else yf - v["len"]
+                sx0 = int(round((x + v["w"] / 2 - ROAD_X[0]) * PX_PER_M))
+                sx1 = int(round((x + v["w"] / 2 + v["shadow"] - ROAD_X[0]) * PX_PER_M))
+                a0 = max(int(round((y0 - ROAD_Y[0]) * PX_PER_M)), 0)
+                b0 = min(int(round((y0 + v["len"] - ROAD_Y[0]) * PX_PER_M)), canvas.shape[0])
+                if b0 > a0:
+                    canvas[a0:b0, sx0:sx1] = canvas[a0:b0, sx0:sx1] // 2
         for v, (x, yf) in zip(self.vehicles, self.positions(t)):
             # front is the end facing the direction of travel
             y0 = yf if v["v"] < 0 else yf - v["len"]
@@ -354,3 +366,25 @@ def test_a_held_group_that_joins_another_vehicle_is_never_released():
 
     assert run(merged=False) == [2]  # lost after moving 4 m while held: its points still go out
     assert run(merged=True) == []
+
+
+def test_a_shadow_cast_into_the_next_lane_is_not_a_second_vehicle(site, monkeypatch):
+    """A low sun casts a vehicle's shadow across the next lane; its corners move with the vehicle like a
+    vehicle's. The shadow test (darker road, road texture kept, reaching the vehicle) joins it to its caster."""
+    import appliance.background as background
+
+    monkeypatch.setattr(background, "READY_UPDATES", 10)  # the scene starts on an empty road: learnt at once
+
+    def lanes_of_finished(shadow_test: bool) -> list[float]:
+        pipe = VisionPipeline(site)
+        if not shadow_test:
+            pipe.background.update = lambda img: None  # never learns the road: no shadow is ever recognised
+        scene = Scene(7)
+        scene.add_vehicle(-1.75, 80.0, 4.5, -18.0, t0=2.0, shadow_m=3.2)
+        finished, _ = run(pipe, scene, 6.5)
+        return sorted(f.x for f in finished)
+
+    without = lanes_of_finished(False)
+    assert len(without) == 2 and without[1] > 0.0, without  # the scene does make the shadow a "vehicle"
+    xs = lanes_of_finished(True)
+    assert len(xs) == 1 and -2.8 < xs[0] < -0.7, xs  # one vehicle, in its own lane
