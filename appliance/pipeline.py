@@ -229,8 +229,10 @@ class VisionPipeline:
         so Edie's d(A) and t(A) cover the whole region."""
         traj = list(v.trajectory or [])
         speed = max(abs(v.vy), self._group_speed(v.id))
-        if held and held[-1].t - held[0].t >= 0.5 * HOLD_S:  # measured over the held points
-            speed = abs(held[-1].y_front - held[0].y_front) / (held[-1].t - held[0].t)
+        if held and held[-1].t - held[0].t >= 0.5 * HOLD_S:
+            # measured over the held points (elevated features' speeds are magnified), but never below the
+            # near end's own: its points may have stood still a while when its lowest feature was lost
+            speed = max(abs(held[-1].y_front - held[0].y_front) / (held[-1].t - held[0].t), abs(v.vy))
         # a group's first point may come from a static feature it was chained to before the vehicle
         # arrived: drop leading points from which the vehicle could not have come at anything like its speed
         pts = traj + [(v.t, v.x, v.y_front)]
