@@ -42,6 +42,7 @@ RECHECK_DRIFT_M = 1.5  # ... at a steady place on it (this much drift: a separat
 # may read a few per cent low, and a level part is a queued car's business)
 RECHECK_K_MIN = 1.12
 MAX_HEIGHT_M = 4.5  # the tallest vehicle: bounds the height magnification of a fragment
+MAX_WIDTH_M = 2.6  # the widest vehicle
 SPEED_WINDOW_S = 0.5  # speeds compared for the height magnification are averaged over this long
 GROUND_LEN_FRAMES = 15  # reported length: median of the height-corrected lengths of this many frames,
 # those when the vehicle was nearest the camera (an error in k costs the more the further away it is)
@@ -55,8 +56,9 @@ HIDDEN_SHARE_REAR = 0.15
 # lane of the same direction is such a side part when it moves with the vehicle, its near end is level
 # with the vehicle's, and together they are no wider than one vehicle with its shadow:
 SIDE_SPEED_TOL = 0.1  # relative speed difference
+SIDE_SPEED_TOL_WATCHED = 0.2  # ... of speeds averaged over SPEED_WINDOW_S, for a part watched RECHECK_VOTES frames
 SIDE_DY_M = 2.0  # near ends this close along the road
-SIDE_GAP_M = 0.5  # lateral gap between the two footprints
+SIDE_GAP_M = 1.0  # lateral gap between the two footprints
 SIDE_MAX_WIDTH_M = 3.5  # joint footprint width (two cars side by side span >= 5 m: lane 3.5 + car 1.7)
 # ... wider when the new group is only a shadow on the road (the image test says so): cast sideways by a
 # low sun it reaches a lane or more across, starting a little behind or ahead of the vehicle
@@ -441,11 +443,10 @@ class Grouper:
             m = FRAGMENT_X_MARGIN_NO_CAMERA_M if vy / o.vy > 1.05 else FRAGMENT_X_MARGIN_M
             if lo <= y <= hi and x_lo - m <= st.x <= x_hi + m:
                 return GHOST
-        if not tr.reported:
-            side = self._side_host(tr, st, y, vy, members, sign)
-            if side is not None:
-                self._side = True
-                return side
+        side = self._side_host(tr, st, y, vy, members, sign)
+        if side is not None:
+            self._side = True
+            return side
         for vid, other in self.tracks.items():
             o = other.last
             if vid == tr.id or o is None or o.t != st.t or o.vy * vy <= 0:
@@ -464,23 +465,31 @@ class Grouper:
                 continue
             gx, gy = st.x, y
             m = FRAGMENT_X_MARGIN_M
+            x_lo, x_hi = other.x_lo, other.x_hi
             if k > 1.05:
                 if self.foot is not None:
                     gx = self.foot[0] + (st.x - self.foot[0]) / k
                     gy = self.foot[1] + (y - self.foot[1]) / k
+                    # the low features lie on the side facing the camera; the far side is hidden, a
+                    # vehicle's width away at most, and its upper parts are what lands in the next lane
+                    if self.foot[0] >= x_hi:
+                        x_lo = min(x_lo, x_hi - MAX_WIDTH_M)
+                    elif self.foot[0] <= x_lo:
+                        x_hi = max(x_hi, x_lo + MAX_WIDTH_M)
                 else:  # camera unknown: an elevated part may lie anywhere across the vehicle's lane
                     m = FRAGMENT_X_MARGIN_NO_CAMERA_M
             lo, hi = _extent(o, other.own_length)
-            if lo <= gy <= hi and other.x_lo - m <= gx <= other.x_hi + m:
+            if lo <= gy <= hi and x_lo - m <= gx <= x_hi + m:
                 self._place = gy - o.y_front  # where on the vehicle the group lies
                 return vid
         return None
 
     def _side_host(self, tr: VehicleTrack, st: VehicleState, y: float, vy: float, members: np.ndarray,
                    sign: int) -> int | None:
-        """A vehicle in a neighbouring lane of the same direction whose side part this new group is: same
+        """A vehicle in a neighbouring lane of the same direction whose side part this group is: same
         speed, near ends level, and either a receding vehicle's flank (joint footprint no wider than one
-        vehicle) or only a shadow on the road (the image says so)."""
+        vehicle) or only a shadow on the road (the image says so). A reported group is compared by its
+        speed over a while and only with a vehicle reported before it; sets self._place for the votes."""
         for vid, other in self.tracks.items():
             o = other.last
             if vid == tr.id or o is None or o.t != st.t or other.lane_index == tr.lane_index:
@@ -489,14 +498,25 @@ class Grouper:
                 continue
             if not other.reported and (other.first_t > tr.first_t or other.n_max < self.p.min_features):
                 continue
-            dy = abs(other.trajectory[-1][2] - y)
-            dv = abs(vy / o.vy - 1.0)
+            if tr.reported and (not other.reported or other.report_t > tr.report_t):
+                continue
+            ov = other.mean_vy(o.vy) if tr.reported else o.vy
+            if ov * vy <= 0:
+                continue
+            self._place = y - other.trajectory[-1][2]
+            dy = abs(self._place)
+            dv = abs(vy / ov - 1.0)
             if dv > SHADOW_SPEED_TOL or dy > SHADOW_DY_M:
                 continue
             gap = max(tr.x_lo - other.x_hi, other.x_lo - tr.x_hi)
             width = max(tr.x_hi, other.x_hi) - min(tr.x_lo, other.x_lo)
-            if sign > 0 and gap <= SIDE_GAP_M and width <= SIDE_MAX_WIDTH_M and dy <= SIDE_DY_M and dv <= SIDE_SPEED_TOL:
-                return vid
+            if sign > 0 and gap <= SIDE_GAP_M and width <= SIDE_MAX_WIDTH_M:
+                if dy <= SIDE_DY_M and dv <= SIDE_SPEED_TOL:
+                    return vid
+                # a reported part is watched longer (the votes): anywhere along the vehicle, speeds less sure
+                lo, hi = _extent(o, other.own_length)
+                if tr.reported and lo <= y <= hi and dv <= SIDE_SPEED_TOL_WATCHED:
+                    return vid
             if gap <= SHADOW_GAP_M and width <= SHADOW_MAX_WIDTH_M and self._is_shadow is not None and vid in self._groups:
                 if self._is_shadow(self._px[members], self._px[self._groups[vid]]):
                     return vid
