@@ -15,9 +15,9 @@ COUNT_Y = 30.0
 SETTLING = 0.6
 
 
-def _run(objects: list[tuple[np.ndarray, float, int, int]], frames: int = 90) -> dict[int, list]:
+def _run(objects: list[tuple[np.ndarray, float, int, int]], frames: int = 90, lanes=None) -> dict[int, list]:
     """objects: (ground points (n, 2) at t=0, speed along Y, lane, first frame seen, height above road)."""
-    site = parse_site(site_dict())
+    site = parse_site(site_dict() if lanes is None else site_dict(lanes=lanes))
     zones = SiteZones(site)
     cx, cy, ch = zones.camera
     g = Grouper(site.tracking, zones)
@@ -52,8 +52,13 @@ def _run(objects: list[tuple[np.ndarray, float, int, int]], frames: int = 90) ->
     return seen
 
 
-def _counted(seen: dict[int, list]) -> int:
-    return sum(1 for ss in seen.values() if any(a.y_front > COUNT_Y >= b.y_front for a, b in zip(ss, ss[1:])))
+def _counted(seen: dict[int, list], receding: bool = False) -> int:
+    """Vehicles whose front crossed the count line (a vehicle's first report carries its earlier points)."""
+    n = 0
+    for ss in seen.values():
+        ys = [p[2] for p in ss[0].trajectory or []] + [st.y_front for st in ss]
+        n += any((a < COUNT_Y <= b) if receding else (a > COUNT_Y >= b) for a, b in zip(ys, ys[1:]))
+    return n
 
 
 def _box(x0: float, x1: float, y0: float, y1: float, n: int, seed: int) -> np.ndarray:
@@ -125,3 +130,16 @@ def test_reported_length_is_the_vehicle_on_the_road_not_its_roof_projected_beyon
     assert np.all(np.abs(lengths - length) < 0.8), lengths
     # the far end moves with the vehicle: the rear is the front plus that length
     assert np.all(np.abs(np.array([st.y_rear - st.y_front for st in states]) - lengths) < 1e-6)
+
+
+def test_a_receding_vehicles_side_part_in_the_next_lane_joins_it_once_watched():
+    """Receding traffic seen from the side: a low part of a vehicle (its flank's lower edge, a short
+    shadow) shows up across the lane line a little ahead of its rear, as a group of its own. Watched
+    for a while it keeps its place along the vehicle at the vehicle's speed, and joins it; a car in
+    the next lane a lane's width away does not."""
+    lanes = (("receding", -3.5, 0.0), ("receding", 0.0, 3.5))
+    car = (_box(0.4, 2.2, 10.0, 14.5, 12, 7), 10.0, 2, 0, 0.0)  # driving near the lane line
+    side = (_box(-0.5, -0.2, 12.6, 13.6, 6, 8), 10.0, 1, 12, 0.0)  # 2.6 m ahead of its rear, just across
+    assert _counted(_run([car, side], lanes=lanes), receding=True) == 1
+    beside = (_box(-2.6, -0.9, 12.6, 17.1, 10, 9), 10.0, 1, 12, 0.0)
+    assert _counted(_run([car, beside], lanes=lanes), receding=True) == 2
