@@ -28,6 +28,10 @@ MIN_SPEED_MPS = 1.5  # ... and is moving at least this fast (vehicles are found 
 # date the vehicle's entry back to when the edge was first seen
 STILL_S = 0.4
 STILL_M = 0.5
+# A reported group standing still this long that a vehicle of its lane then drives through is clutter
+# (features left on an occluder's edge): vehicles queue, they do not pass through one another.
+STALL_S = 2.0
+PASS_X_M = 1.5  # ... the vehicle passing within this much across the road
 # A new group is a fragment of a known vehicle (its elevated top or its rear, seen as a separate group)
 # when, after undoing the height magnification, its near end lies in that vehicle's footprint:
 FRAGMENT_X_MARGIN_M = 0.5  # lateral slack around the footprint
@@ -179,6 +183,8 @@ class VehicleTrack:
     votes: tuple[int, int, float] = (0, 0, 0.0)  # (candidate host, consecutive frames it matched, place on it)
     ground_lens: list[tuple[float, float]] = field(default_factory=list)  # (distance, height-corrected length)
     ground: tuple[float, float] | None = None  # reported length and far end on the road
+    still_y: float = float("nan")  # where the near end has stood (within STILL_M) ...
+    still_t: float = 0.0  # ... since when
     trajectory: list[tuple[float, float, float]] = field(default_factory=list)
 
     def mean_vy(self, fallback: float) -> float:
@@ -342,6 +348,8 @@ class Grouper:
             if not tr.merged:
                 tr.own_length = length
             tr.trajectory.append((t, st.x, rep_y))
+            if not abs(rep_y - tr.still_y) <= STILL_M:
+                tr.still_y, tr.still_t = rep_y, t
             if not tr.reported and abs(rep_y - tr.start_y) < STILL_M and t - tr.trajectory[0][0] >= STILL_S:
                 tr.trajectory = tr.trajectory[-1:]
                 tr.start_y = rep_y
@@ -390,8 +398,32 @@ class Grouper:
                 ahead = 0.0 if sign < 0 else tr.ground[0]
                 st.trajectory = [(pt, px_, py + ahead) for pt, px_, py in tr.trajectory[:-1]] or None
             out.append(st)
+        for vid in self._passed_through(t):
+            self.tracks.pop(vid)
+            retire.append(groups[vid])
+            self.merged_now.add(vid)
+            out = [st for st in out if st.id != vid]
         slots = np.concatenate(retire) if retire else np.zeros(0, np.int64)
         return [self._grounded(st, ground.get(st.id)) for st in out], slots
+
+    def _passed_through(self, t: float) -> list[int]:
+        """Reported groups standing still for STALL_S that a moving vehicle of their lane drove through
+        in this frame."""
+        stuck = [tr for tr in self.tracks.values()
+                 if tr.reported and tr.last is not None and tr.last.t == t and t - tr.still_t >= STALL_S]
+        found = []
+        for tr in stuck:
+            for other in self.tracks.values():
+                o = other.last
+                if other is tr or other.lane_index != tr.lane_index or o is None or o.t != t:
+                    continue
+                if len(other.trajectory) < 2 or other.n_max < self.p.min_features or abs(o.vy) < MIN_SPEED_MPS:
+                    continue
+                y0, y1 = other.trajectory[-2][2], other.trajectory[-1][2]
+                if (y0 - tr.still_y) * (y1 - tr.still_y) < 0 and abs(o.x - tr.last.x) <= PASS_X_M:
+                    found.append(tr.id)
+                    break
+        return found
 
     def _ground_length(self, tr: VehicleTrack, members: np.ndarray, ys: np.ndarray, near_y: float, vy_near: float,
                        age: np.ndarray, vy: np.ndarray, length: float) -> float:

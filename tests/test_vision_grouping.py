@@ -37,9 +37,11 @@ def _run(objects: list[tuple[np.ndarray, float, int, int]], frames: int = 90, la
                 if f >= first:
                     if not alive[slot]:
                         g.reset_slots(np.array([slot]))
-                    x, y = cx + k * (gx - cx), cy + k * (gy + speed * t - cy)
+                    # speed: m/s, or a function of time giving (distance travelled, speed)
+                    d, v = speed(t) if callable(speed) else (speed * t, speed)
+                    x, y = cx + k * (gx - cx), cy + k * (gy + d - cy)
                     # a new feature's speed is still settling (the tracker's filter starts from a rough one)
-                    s[slot] = (x, y, 0.0, k * speed * (SETTLING if f - first < 10 else 1.0))
+                    s[slot] = (x, y, 0.0, k * v * (SETTLING if f - first < 10 else 1.0))
                     px[slot] = (x, -y + h)
                     lane[slot] = ln
                     alive[slot] = True
@@ -143,3 +145,22 @@ def test_a_receding_vehicles_side_part_in_the_next_lane_joins_it_once_watched():
     assert _counted(_run([car, side], lanes=lanes), receding=True) == 1
     beside = (_box(-2.6, -0.9, 12.6, 17.1, 10, 9), 10.0, 1, 12, 0.0)
     assert _counted(_run([car, beside], lanes=lanes), receding=True) == 2
+
+
+def test_a_still_group_that_a_vehicle_drives_through_is_dropped():
+    """Features a vehicle left on an occluder's edge move with it a little, then stand still there. Such
+    a group is reported (it moved), but when the next vehicle of the lane drives through the place it
+    stands it cannot be a vehicle (vehicles queue; they do not pass through one another): it is dropped."""
+
+    def stuck(t: float) -> tuple[float, float]:  # moves 5 m at 12.5 m/s, then stands still
+        return (-12.5 * min(t, 0.4), -12.5 if t < 0.4 else 0.0)
+
+    clutter = (_box(-2.4, -1.2, 60.0, 60.5, 6, 10), stuck, 1, 0, 0.0)
+    # the next car comes into view at 1.6 s and reaches the clutter (55 m) at about 2.9 s
+    car = (_box(-2.6, -0.9, 74.0, 78.5, 10, 11), lambda t: (-15.0 * max(t - 1.6, 0.0), -15.0), 1, 40, 0.0)
+    seen = _run([clutter, car], frames=130)
+    still = [vid for vid, ss in seen.items() if ss[0].y_front < 65.0]
+    assert len(still) == 1, {vid: (ss[0].t, ss[0].y_front) for vid, ss in seen.items()}
+    last_t = seen[still[0]][-1].t
+    assert last_t < 3.2, last_t  # dropped when the car went through it, not kept standing there
+    assert _counted(seen) == 1  # the car, once
