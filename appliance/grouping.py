@@ -46,7 +46,6 @@ RECHECK_DRIFT_M = 1.5  # ... at a steady place on it (this much drift: a separat
 # may read a few per cent low, and a level part is a queued car's business)
 RECHECK_K_MIN = 1.12
 MAX_HEIGHT_M = 4.5  # the tallest vehicle: bounds the height magnification of a fragment
-MAX_WIDTH_M = 2.6  # the widest vehicle
 SPEED_WINDOW_S = 0.5  # speeds compared for the height magnification are averaged over this long
 GROUND_LEN_FRAMES = 15  # reported length: median of the height-corrected lengths of this many frames,
 # those when the vehicle was nearest the camera (an error in k costs the more the further away it is)
@@ -497,21 +496,14 @@ class Grouper:
                 continue
             gx, gy = st.x, y
             m = FRAGMENT_X_MARGIN_M
-            x_lo, x_hi = other.x_lo, other.x_hi
             if k > 1.05:
                 if self.foot is not None:
                     gx = self.foot[0] + (st.x - self.foot[0]) / k
                     gy = self.foot[1] + (y - self.foot[1]) / k
-                    # the low features lie on the side facing the camera; the far side is hidden, a
-                    # vehicle's width away at most, and its upper parts are what lands in the next lane
-                    if self.foot[0] >= x_hi:
-                        x_lo = min(x_lo, x_hi - MAX_WIDTH_M)
-                    elif self.foot[0] <= x_lo:
-                        x_hi = max(x_hi, x_lo + MAX_WIDTH_M)
                 else:  # camera unknown: an elevated part may lie anywhere across the vehicle's lane
                     m = FRAGMENT_X_MARGIN_NO_CAMERA_M
             lo, hi = _extent(o, other.own_length)
-            if lo <= gy <= hi and x_lo - m <= gx <= x_hi + m:
+            if lo <= gy <= hi and other.x_lo - m <= gx <= other.x_hi + m:
                 self._place = gy - o.y_front  # where on the vehicle the group lies
                 return vid
         return None

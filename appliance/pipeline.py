@@ -38,6 +38,11 @@ BACKFILL_MIN_FEATURES = 4  # groups with fewer features when released are not ex
 # its speed is measured over its own points before its trajectory is extended back to the region entry,
 # and a group that merges into another meanwhile never reaches the measures.
 HOLD_S = 0.5
+# A feature that loses this much speed faster than a vehicle can brake has latched onto something static
+# (an occluder's edge where vehicles pass behind it): it is dropped.
+STOP_LOSS_MPS = 8.0
+MAX_BRAKE_MPS2 = 12.0
+SETTLED_AGE = 5  # frames before a feature's speed counts
 HOLD_MIN_TRAVEL_M = 3.0  # ... and until it has moved this far (an occluder's edge where vehicles emerge does not)
 ALIGN_MIN_PX = 0.5  # camera shifts between frames below this leave the previous frame as it is (resampling
 # it would only blur it; a still camera's stabiliser jitters by a few hundredths of a pixel)
@@ -272,7 +277,14 @@ class VisionPipeline:
         # a feature moving against its lane's direction is on something else (shadow edge, noise)
         sign = self.zones.sign_by_index[tr.lane[live]]
         wrong = (tr.age[live] >= 3) & (tr.s[live, 3] * sign < -1.0)
-        drop = live[outside | static | wrong]
+        v = np.abs(tr.s[live, 3])
+        settled = tr.age[live] >= SETTLED_AGE
+        up = settled & (v >= tr.vmax[live])
+        tr.vmax[live[up]] = v[up]
+        tr.t_vmax[live[up]] = t
+        lost = tr.vmax[live] - v
+        halted = settled & (lost > STOP_LOSS_MPS) & (lost > MAX_BRAKE_MPS2 * (t - tr.t_vmax[live]))
+        drop = live[outside | static | wrong | halted]
         if len(drop):
             tr.kill(drop)
 

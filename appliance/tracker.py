@@ -273,6 +273,8 @@ class FeatureTracker:
         self.born_s = np.zeros((n, 2))
         self.born_px = np.zeros((n, 2))  # stabilised image position at birth
         self.max_disp = np.zeros(n)  # largest image displacement from birth (px, stabilised)
+        self.vmax = np.zeros(n)  # highest settled along-road speed so far (m/s) ...
+        self.t_vmax = np.zeros(n)  # ... and when it was last reached
         self.next_id = 0
         self.max_speed = params.max_speed_kmh / 3.6
 
@@ -336,6 +338,8 @@ class FeatureTracker:
         self.born_s[free] = road
         self.born_px[free] = px - off
         self.max_disp[free] = 0.0
+        self.vmax[free] = 0.0
+        self.t_vmax[free] = t
         self.fid[free] = np.arange(self.next_id, self.next_id + k)
         self.next_id += k
         self.alive[free] = ok

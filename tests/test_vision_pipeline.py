@@ -388,3 +388,28 @@ def test_a_shadow_cast_into_the_next_lane_is_not_a_second_vehicle(site, monkeypa
     assert len(without) == 2 and without[1] > 0.0, without  # the scene does make the shadow a "vehicle"
     xs = lanes_of_finished(True)
     assert len(xs) == 1 and -2.8 < xs[0] < -0.7, xs  # one vehicle, in its own lane
+
+
+def test_a_feature_stopping_faster_than_a_vehicle_brakes_is_dropped(site):
+    """A feature that latches onto a static edge (an overhead sign where vehicles pass behind it) goes from
+    the vehicle's speed to standing still within a few frames; no vehicle brakes like that. A feature of
+    a vehicle braking hard but possibly (5 m/s2) is kept."""
+    pipe = VisionPipeline(site)
+    tr = pipe.tracker
+    slots = np.array([0, 1])
+    tr.alive[slots] = True
+    tr.age[slots] = 10
+    tr.lane[slots] = 1
+    tr.s[slots] = (-1.75, 40.0, 0.0, -20.0)
+    tr.max_disp[slots] = 100.0  # they have moved
+    t = 0.0
+    alive_at = []
+    while t < 4.0:
+        tr.s[0, 3] = -max(20.0 - 100.0 * t, 0.0)  # to a standstill in 0.2 s
+        tr.s[1, 3] = -max(20.0 - 5.0 * t, 0.0)  # in 4 s
+        pipe._drop_features(t)
+        alive_at.append((t, bool(tr.alive[0]), bool(tr.alive[1])))
+        t += 0.04
+    gone = next(t for t, a, _ in alive_at if not a)
+    assert gone <= 0.2, alive_at[:8]
+    assert all(b for _, _, b in alive_at), [x for x in alive_at if not x[2]][:3]
