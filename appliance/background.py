@@ -9,7 +9,7 @@ import numpy as np
 UPDATE_EVERY = 4  # frames between background updates (moving vehicles never stay long enough to be learnt)
 FAST_UPDATES = 100  # the first updates move this many grey levels at once (a quick start) ...
 FAST_STEP = 4
-READY_UPDATES = 150  # ... and the test answers only after this many updates
+READY_UPDATES = 50  # ... and the test answers only after this many updates (8 s at 25 fps)
 NOISE = 10  # grey levels: a pixel this close to the background is the road as usual
 PAD_PX = 3
 MAX_BRIGHT_SHARE = 0.03  # a shadow brightens nothing
