@@ -8,6 +8,7 @@ reported one is watched for RECHECK_S more and joins once it keeps one place on 
 
 from __future__ import annotations
 
+import bisect
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
@@ -156,8 +157,15 @@ def _extent(o: VehicleState, length: float | None = None) -> tuple[float, float]
     return min(o.y_front, rear) - 1.0, max(o.y_front, rear) + 1.0
 
 
+def _median(a) -> float:
+    """np.median's value for the few numbers of one group, without its overhead."""
+    a = np.sort(np.asarray(a, dtype=np.float64))
+    n = len(a)
+    return float(a[n // 2]) if n % 2 else float((a[n // 2 - 1] + a[n // 2]) / 2.0)
+
+
 def _median_length(samples: list[tuple[float, float]], default: float | None) -> float | None:
-    return float(np.median([g for _, g in samples])) if samples else default
+    return _median([g for _, g in samples]) if samples else default
 
 
 @dataclass
@@ -184,6 +192,7 @@ class VehicleTrack:
     ground: tuple[float, float] | None = None  # reported length and far end on the road
     still_y: float = float("nan")  # where the near end has stood (within STILL_M) ...
     still_t: float = 0.0  # ... since when
+    _mean_vy: tuple = ((None, 0), None)  # mean_vy's last answer, for the trajectory it was computed on
     trajectory: list[tuple[float, float, float]] = field(default_factory=list)
 
     def mean_vy(self, fallback: float) -> float:
@@ -192,10 +201,15 @@ class VehicleTrack:
         if len(tr) < 3:
             return fallback
         t1, _, y1 = tr[-1]
+        if self._mean_vy[0] == (t1, len(tr)):
+            v = self._mean_vy[1]
+            return fallback if v is None else v
         for t0, _, y0 in reversed(tr):
             if t1 - t0 >= SPEED_WINDOW_S:
                 break
-        return (y1 - y0) / (t1 - t0) if t1 - t0 >= 0.2 else fallback
+        v = (y1 - y0) / (t1 - t0) if t1 - t0 >= 0.2 else None
+        self._mean_vy = ((t1, len(tr)), v)
+        return fallback if v is None else v
 
 
 class Grouper:
@@ -310,7 +324,7 @@ class Grouper:
             # receding one. When the lowest feature is lost the next one is further back: the near end then
             # carries on from where it was at the vehicle's speed (a new lower feature moves it forwards).
             near_v = members[(np.abs(ys - s[rep, 1]) < NEAR_REP_M) & (age[members] >= 3)]
-            vy_near = float(np.median(s[near_v, 3])) if len(near_v) else float(s[rep, 3])
+            vy_near = _median(s[near_v, 3]) if len(near_v) else float(s[rep, 3])
             if tr.trajectory:
                 t0, _, prev = tr.trajectory[-1]
                 ahead = prev + vy_near * (t - t0)
@@ -332,13 +346,13 @@ class Grouper:
             ground[vid] = tr.ground
             # velocity: median over the settled features near the representative one (the lowest part
             # of the vehicle; higher features move faster in the road projection)
-            vx = float(np.median(s[near_v, 2])) if len(near_v) else float(s[rep, 2])
+            vx = _median(s[near_v, 2]) if len(near_v) else float(s[rep, 2])
             vy = vy_near
             low = members[np.abs(ys - s[rep, 1]) < NEAR_REP_M]  # the low part: the footprint across the road
             tr.x_lo, tr.x_hi = float(s[low, 0].min()), float(s[low, 0].max())
             x = float(s[rep, 0])
             if tr.side:
-                x = float(np.median(s[low, 0]))
+                x = _median(s[low, 0])
             st = VehicleState(
                 id=vid, t=t, x=x, y_front=front, y_rear=rear, vx=vx,
                 vy=vy, length=length, n_features=int(len(members)),
@@ -432,16 +446,18 @@ class Grouper:
         if self.foot is None or abs(vy_near) < MIN_SPEED_MPS or length <= 0 or tr.lane_index <= 0:
             return length
         far_y = float(ys.max())
+        cy = self.foot[1]
+        lens = tr.ground_lens
+        if len(lens) >= GROUND_LEN_FRAMES and abs(far_y - cy) >= lens[-1][0]:
+            return tr.ground[0] if tr.ground else _median_length(lens, length)  # further than every kept sample
         far = members[(far_y - ys < NEAR_REP_M) & (age[members] >= 3)]
         if len(far):
-            k = min(max(float(np.median(vy[far])) / vy_near, 1.0), self.k_max)
-            cy = self.foot[1]
+            k = min(max(_median(vy[far]) / vy_near, 1.0), self.k_max)
             seen = max(cy + (far_y - cy) / k - float(near_y), 0.0)
             share = HIDDEN_SHARE_FRONT if self.zones.by_index(tr.lane_index).sign > 0 else HIDDEN_SHARE_REAR
-            tr.ground_lens.append((abs(far_y - cy), min(seen / (1.0 - share), length)))
-            if len(tr.ground_lens) > GROUND_LEN_FRAMES:
-                tr.ground_lens.remove(max(tr.ground_lens))
-        return _median_length(tr.ground_lens, length)
+            bisect.insort(lens, (abs(far_y - cy), min(seen / (1.0 - share), length)))
+            del lens[GROUND_LEN_FRAMES:]  # kept sorted by distance: the nearest ones
+        return _median_length(lens, length)
 
     @staticmethod
     def _grounded(st: VehicleState, ground: tuple[float, float] | None) -> VehicleState:
