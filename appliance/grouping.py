@@ -476,8 +476,13 @@ class Grouper:
         footprint. Tall vehicles' tops seen in the next lane, or behind them, are such fragments. Sets
         self._place (where on the host the group lies) for the caller's steadiness votes."""
         y = tr.trajectory[-1][2]
-        # a reported group's speed over a while (steadier); a new one has only its features' speeds
-        vy = tr.mean_vy(st.vy) if tr.reported else st.vy
+        # a reported group's speed over a while (steadier); a new one has only its features' speeds. A few-
+        # feature group's near end may have stood still a while (its lowest feature changing): then its
+        # features' own speed is the better one
+        vy = st.vy
+        if tr.reported:
+            mv = tr.mean_vy(st.vy)
+            vy = mv if abs(mv) >= abs(st.vy) else st.vy
         self._side = False
         self.recent = [r for r in self.recent if st.t - r[0].t <= GHOST_S]
         for o, x_lo, x_hi in [] if tr.reported else self.recent:
