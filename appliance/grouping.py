@@ -417,6 +417,8 @@ class Grouper:
             self.merged_now.add(vid)
             out = [st for st in out if st.id != vid]
         slots = np.concatenate(retire) if retire else np.zeros(0, np.int64)
+        # this frame's image test and features are not state (a checkpoint pickles the grouper)
+        self._is_shadow, self._px, self._groups = None, np.zeros((0, 2)), {}
         return [self._grounded(st, ground.get(st.id)) for st in out], slots
 
     def _passed_through(self, t: float) -> list[int]:
