@@ -44,8 +44,12 @@ def test_shadow_is_told_from_dark_and_bright_vehicles():
     shadow[40:71, 50:101] = (road[40:71, 50:101] * 0.5).astype(np.uint8)
     assert bg.is_shadow(shadow, pts)
     dark_car = road.copy()
-    dark_car[40:71, 50:101] = 55  # as dark as the shadow on average, but no road texture
+    paint = np.random.default_rng(5).normal(55, 12, (31, 51))  # as dark as the shadow, its own texture
+    dark_car[40:71, 50:101] = np.clip(paint, 0, 255).astype(np.uint8)
     assert not bg.is_shadow(dark_car, pts)
+    flat_car = road.copy()
+    flat_car[40:71, 50:101] = 55  # uniformly dark: no texture at all
+    assert not bg.is_shadow(flat_car, pts)
     bright_car = shadow.copy()
     bright_car[45:60, 60:90] = 220  # a vehicle standing in the shadow
     assert not bg.is_shadow(bright_car, pts)
