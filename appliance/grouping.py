@@ -56,9 +56,9 @@ HIDDEN_SHARE_FRONT = 0.3
 HIDDEN_SHARE_REAR = 0.15
 # A receding vehicle enters large at the image bottom: when it straddles two lanes (changing lanes) or its
 # shadow or flank falls in the next lane, the features born there carry that lane's label and form a group
-# of their own. A new group in a neighbouring
-# lane of the same direction is such a side part when it moves with the vehicle, its near end is level
-# with the vehicle's, and together they are no wider than one vehicle with its shadow:
+# of their own. A new group in a neighbouring lane of the same direction is such a side part when it moves
+# with the vehicle, its near end is level with the vehicle's, and together they are no wider than one
+# vehicle with its shadow:
 SIDE_SPEED_TOL = 0.1  # relative speed difference
 SIDE_SPEED_TOL_WATCHED = 0.2  # ... of speeds averaged over SPEED_WINDOW_S, for a part watched RECHECK_VOTES frames
 SIDE_DY_M = 2.0  # near ends this close along the road
@@ -229,9 +229,6 @@ class Grouper:
         self.finished_total = 0
         self._place = 0.0
         self._side = False
-        self._is_shadow: Callable[[np.ndarray, np.ndarray], bool] | None = None
-        self._groups: dict[int, np.ndarray] = {}
-        self._px = np.zeros((0, 2))
         self.merged_now: set[int] = set()  # groups joined to another vehicle in the last step (for the pipeline's hold)
         self.recent: list[tuple[VehicleState, float, float]] = []  # finished vehicles, for their leftovers
         cam = zones.camera  # (X, Y, height) of the camera, or None
@@ -279,8 +276,6 @@ class Grouper:
         """Returns the vehicle states for this frame and the feature slots to retire (finalised vehicles).
         is_shadow(points, caster points) tells whether image points lie on a shadow of the caster's."""
         p = self.p
-        self._is_shadow = is_shadow
-        self._px = px
         live = np.flatnonzero(alive)
         retire: list[np.ndarray] = []
         out: list[VehicleState] = []
@@ -293,7 +288,9 @@ class Grouper:
                         p.segmentation_lateral_m, p.segmentation_m, p.segmentation_per_m)
             components(live, self.state, self.labels)
             groups = self._assign_ids(live)
-        self._groups = groups
+        # shadow(group slots, host id): the image test for a group lying only on the host's shadow
+        shadow = None if is_shadow is None else (
+            lambda a, host: host in groups and is_shadow(px[a], px[groups[host]]))
         for vid in list(self.tracks):
             if vid not in groups:
                 tr = self.tracks.pop(vid)
@@ -335,7 +332,7 @@ class Grouper:
                     rep_y = max(prev, min(max(rep_y, ahead), rep_y + MAX_LEAD_M))
             else:
                 tr.start_y = rep_y
-            g = self._ground_length(tr, members, ys, s[rep, 1], vy_near, age, s[:, 3], length)
+            g = self._ground_length(tr, sign, members, ys, s[rep, 1], vy_near, age, s[:, 3], length)
             if sign < 0:
                 front, rear = rep_y, rep_y + length
                 tr.ground = (g, rep_y + g)
@@ -379,7 +376,7 @@ class Grouper:
                 pending.append((tr, st, sign, members, length))
         # fragments are judged once every vehicle of this frame is up to date
         for tr, st, sign, members, length in pending:
-            host = self._host_of(tr, st, sign, members)
+            host = self._host_of(tr, st, sign, members, shadow)
             if host == GHOST:  # the rest of a vehicle already finalised: retire it quietly
                 self.merged_now.add(tr.id)
                 self.tracks.pop(tr.id)
@@ -417,8 +414,6 @@ class Grouper:
             self.merged_now.add(vid)
             out = [st for st in out if st.id != vid]
         slots = np.concatenate(retire) if retire else np.zeros(0, np.int64)
-        # this frame's image test and features are not state (a checkpoint pickles the grouper)
-        self._is_shadow, self._px, self._groups = None, np.zeros((0, 2)), {}
         return [self._grounded(st, ground.get(st.id)) for st in out], slots
 
     def _passed_through(self, t: float) -> list[int]:
@@ -440,8 +435,8 @@ class Grouper:
                     break
         return found
 
-    def _ground_length(self, tr: VehicleTrack, members: np.ndarray, ys: np.ndarray, near_y: float, vy_near: float,
-                       age: np.ndarray, vy: np.ndarray, length: float) -> float:
+    def _ground_length(self, tr: VehicleTrack, sign: int, members: np.ndarray, ys: np.ndarray, near_y: float,
+                       vy_near: float, age: np.ndarray, vy: np.ndarray, length: float) -> float:
         """The vehicle's length on the road: the group's far end is usually a roofline, projected beyond the
         vehicle by k = its projected speed over the near end's. Undoing k (camera known) gives the roofline's
         place over the road; the part of the vehicle hidden beyond it is added as a share of the length."""
@@ -456,7 +451,7 @@ class Grouper:
         if len(far):
             k = min(max(_median(vy[far]) / vy_near, 1.0), self.k_max)
             seen = max(cy + (far_y - cy) / k - float(near_y), 0.0)
-            share = HIDDEN_SHARE_FRONT if self.zones.by_index(tr.lane_index).sign > 0 else HIDDEN_SHARE_REAR
+            share = HIDDEN_SHARE_FRONT if sign > 0 else HIDDEN_SHARE_REAR
             bisect.insort(lens, (abs(far_y - cy), min(seen / (1.0 - share), length)))
             del lens[GROUND_LEN_FRAMES:]  # kept sorted by distance: the nearest ones
         return _median_length(lens, length)
@@ -472,7 +467,8 @@ class Grouper:
             return replace(st, y_front=far, length=g)
         return replace(st, y_rear=far, length=g)
 
-    def _host_of(self, tr: VehicleTrack, st: VehicleState, sign: int, members: np.ndarray) -> int | None:  # noqa: C901
+    def _host_of(self, tr: VehicleTrack, st: VehicleState, sign: int, members: np.ndarray,  # noqa: C901
+                 shadow: Callable[[np.ndarray, int], bool] | None) -> int | None:
         """A reported vehicle that this new group is a part of: after undoing the height magnification
         (its projected speed over the vehicle's, k >= 1) the group's near end falls inside the vehicle's
         footprint. Tall vehicles' tops seen in the next lane, or behind them, are such fragments. Sets
@@ -497,7 +493,7 @@ class Grouper:
             m = FRAGMENT_X_MARGIN_NO_CAMERA_M if vy / o.vy > 1.05 else FRAGMENT_X_MARGIN_M
             if lo <= y <= hi and x_lo - m <= st.x <= x_hi + m:
                 return GHOST
-        side = self._side_host(tr, st, y, vy, members, sign)
+        side = self._side_host(tr, st, y, vy, members, sign, shadow)
         if side is not None:
             self._side = True
             return side
@@ -532,7 +528,7 @@ class Grouper:
         return None
 
     def _side_host(self, tr: VehicleTrack, st: VehicleState, y: float, vy: float, members: np.ndarray,
-                   sign: int) -> int | None:
+                   sign: int, shadow: Callable[[np.ndarray, int], bool] | None) -> int | None:
         """A vehicle in a neighbouring lane of the same direction whose side part this group is: same
         speed, near ends level, and either a receding vehicle's flank (joint footprint no wider than one
         vehicle) or only a shadow on the road (the image says so). A reported group is compared by its
@@ -564,9 +560,8 @@ class Grouper:
                 lo, hi = _extent(o, other.own_length)
                 if tr.reported and lo <= y <= hi and dv <= SIDE_SPEED_TOL_WATCHED:
                     return vid
-            if gap <= SHADOW_GAP_M and width <= SHADOW_MAX_WIDTH_M and self._is_shadow is not None and vid in self._groups:
-                if self._is_shadow(self._px[members], self._px[self._groups[vid]]):
-                    return vid
+            if gap <= SHADOW_GAP_M and width <= SHADOW_MAX_WIDTH_M and shadow is not None and shadow(members, vid):
+                return vid
         return None
 
     def _link(self, a: np.ndarray, b: np.ndarray) -> None:

@@ -38,12 +38,12 @@ BACKFILL_MIN_FEATURES = 4  # groups with fewer features when released are not ex
 # its speed is measured over its own points before its trajectory is extended back to the region entry,
 # and a group that merges into another meanwhile never reaches the measures.
 HOLD_S = 0.5
+HOLD_MIN_TRAVEL_M = 3.0  # ... and until it has moved this far (an occluder's edge where vehicles emerge does not)
 # A feature that loses this much speed faster than a vehicle can brake has latched onto something static
 # (an occluder's edge where vehicles pass behind it): it is dropped.
 STOP_LOSS_MPS = 8.0
 MAX_BRAKE_MPS2 = 12.0
 SETTLED_AGE = 5  # frames before a feature's speed counts
-HOLD_MIN_TRAVEL_M = 3.0  # ... and until it has moved this far (an occluder's edge where vehicles emerge does not)
 ALIGN_MIN_PX = 0.5  # camera shifts between frames below this leave the previous frame as it is (resampling
 # it would only blur it; a still camera's stabiliser jitters by a few hundredths of a pixel)
 
@@ -66,8 +66,8 @@ class VisionPipeline:
         self.prev: np.ndarray | None = None
         self.prev_grid: np.ndarray | None = None
         self.prev_t: float | None = None
-        self.first_t: float | None = None
-        self.held: dict[int, list[VehicleState]] = {}  # vehicle id -> its states since its first report  # capture time of the first frame (backfill never goes before it)
+        self.first_t: float | None = None  # capture time of the first frame (backfill never goes before it)
+        self.held: dict[int, list[VehicleState]] = {}  # vehicle id -> its states since its first report
         self.offset = (0.0, 0.0)
         self.prev_offset = (0.0, 0.0)  # the stabiliser's offset at self.prev
         self.last_states: list[VehicleState] = []

@@ -94,22 +94,9 @@ def speed_errors(got: list[tuple[int, float, float]], want: list[tuple[int, floa
     return np.array(errs)
 
 
-def truth_counts(d: Path, site: SiteConfig) -> dict[int, int]:
+def truth_counts(crossings: list[tuple[int, float, float]], site: SiteConfig) -> dict[int, int]:
     """Truth crossings per lane; vehicles already past the line in the first frame cannot be seen crossing."""
-    by_vehicle: dict[str, list[dict]] = {}
-    for r in csv.DictReader(open(d / "truth" / "vehicles.csv")):
-        by_vehicle.setdefault(r["vehicle_id"], []).append(r)
-    out = {}
-    for lane in site.lanes:
-        app = lane.direction == "approaching"
-        out[lane.id] = sum(
-            1
-            for rows in by_vehicle.values()
-            for a, b in zip(rows, rows[1:])
-            if int(a["frame"]) > 0 and int(b["lane"]) == lane.id
-            and _crosses(float(a["y_front_m"]), float(b["y_front_m"]), lane.count_y_m, app)
-        )
-    return out
+    return {lane.id: sum(1 for c in crossings if c[0] == lane.id) for lane in site.lanes}
 
 
 def render(preset: str, seed: int, seconds: float, tmp: Path) -> Path:
@@ -122,9 +109,10 @@ def render(preset: str, seed: int, seconds: float, tmp: Path) -> Path:
 def check_counts(d: Path, lane_tol: float, total_tol: float, speed_tol: float | None = None) -> tuple[dict, dict]:
     site = load_site(d / "site.toml")
     got, pipe = pipeline_counts(site, sim_frames(d))
-    want = truth_counts(d, site)
+    crossings = truth_crossings(d, site)
+    want = truth_counts(crossings, site)
     if speed_tol is not None:
-        e = speed_errors(pipe.crossings, truth_crossings(d, site))
+        e = speed_errors(pipe.crossings, crossings)
         assert len(e) >= MIN_MATCHED * len(pipe.crossings), (len(e), len(pipe.crossings))
         assert np.median(np.abs(e)) <= speed_tol, np.median(np.abs(e))
     assert sum(want.values()) > 0
