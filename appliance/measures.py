@@ -150,9 +150,13 @@ class TrafficMeasures:
         for vid in [vid for vid, tr in self.tracks.items() if vid not in seen and t - tr.prev[0] > LOST_AFTER_S]:
             tr = self.tracks.pop(vid)
             for lp in self.loops:
-                ev = lp.drop(vid, tr.prev[0], offset)
+                ev = lp.drop(vid, tr.prev[0])
                 if ev is not None:
                     out.loop_events.append(ev)
+        for lp in self.loops:
+            ev = lp.tick(t)
+            if ev is not None:
+                out.loop_events.append(ev)
         for p in self.clock.advance(wall):
             out.periods.extend(self._complete(p, partial=p in self.partial_periods))
         return out
@@ -181,9 +185,8 @@ class TrafficMeasures:
         for lp in self.loops:
             if lp.cfg.lane != raw and v.id not in lp.active:
                 continue  # neither in this loop's lane nor on it
-            ev = lp.update(v.id, raw == lp.cfg.lane, pl, cur, offset, was_in_lane=tr.lane_raw == lp.cfg.lane)
-            if ev is not None:
-                out.loop_events.append(ev)
+            out.loop_events += lp.update(v.id, raw == lp.cfg.lane, pl, cur, offset,
+                                         was_in_lane=tr.lane_raw == lp.cfg.lane)
         tr.prev = (v.t, v.x, v.y_front, v.y_rear, speed)
         tr.lane_raw = raw
         if prev is None:
@@ -229,7 +232,7 @@ class TrafficMeasures:
         if tr is None:
             return
         for lp in self.loops:
-            ev = lp.drop(v.id, v.t, offset)
+            ev = lp.drop(v.id, v.t)
             if ev is not None:
                 out.loop_events.append(ev)
         length = float(np.median(tr.lengths))

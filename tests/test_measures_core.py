@@ -150,6 +150,52 @@ def test_presence_call_is_immediate():
     assert tm.channels()[0].call
 
 
+def _drive(tm, seconds: float, vehicles: list[tuple], speed: float = 10.0, fps: float = 25.0):
+    """Lane-1 vehicles (id, front y at t=0, length or length(t), seen from, seen until) moving towards y=0."""
+    calls, events = [], []
+    for i in range(int(round(seconds * fps))):
+        t = i / fps
+        states = []
+        for vid, y0, length, t_from, t_to in vehicles:
+            if t_from <= t < t_to:
+                n = length(t) if callable(length) else length
+                y = y0 - speed * t
+                states.append(VehicleState(vid, t, -2.5, y, y + n, 0, -speed, n, 5))
+        upd = tm.step(t, EPOCH + t, states)
+        events += [e for e in upd.loop_events if e.loop_id == "L1"]
+        calls.append(tm.channels()[0].call)
+    return calls, events
+
+
+@pytest.mark.parametrize("gap_s,actuations", [(0.08, 1), (0.6, 2)])
+def test_a_fragment_just_behind_a_vehicle_is_the_same_actuation(gap_s, actuations):
+    """A vehicle's group comes apart: its rear part, another group, comes onto the loop 0.08 s after the front
+    part left it. A real loop saw one vehicle. A second vehicle 0.6 s behind is a second actuation."""
+    site = make_site(loops=[{"id": "L1", "lane": 1, "channel": 1, "y_m": 30.0, "length_m": 1.8}])
+    tm = TrafficMeasures(site)
+    # front part 2 m long at 10 m/s: on the loop [30, 31.8] from 1.0 s to 1.38 s; the rear part 2 m long, its
+    # front onto the loop gap_s after that
+    t_rear_on = 1.38 + gap_s
+    calls, events = _drive(tm, 4.0, [(1, 41.8, 2.0, 0.0, 2.0), (2, 31.8 + 10.0 * t_rear_on, 2.0, 0.5, 4.0)])
+    assert tm.channels()[0].count == actuations
+    assert len(events) == actuations
+    assert events[0].t_on == pytest.approx(1.0, abs=0.041)
+    assert events[-1].t_off == pytest.approx(t_rear_on + 0.38, abs=0.041)
+    if actuations == 1:
+        assert all(calls[26:int((t_rear_on + 0.38) * 25)])  # the call held through the dropout
+
+
+def test_a_length_that_shrinks_and_grows_back_is_one_actuation():
+    """The group's rear edge jumps forward off the loop and back over it (a rear part lost, then found again)."""
+    site = make_site(loops=[{"id": "L1", "lane": 1, "channel": 1, "y_m": 30.0, "length_m": 1.8}])
+    tm = TrafficMeasures(site)
+    # 4.5 m car at 10 m/s on the loop [30, 31.8] from 1.0 s; from 1.05 to 1.6 s the group is 0.5 m long, so it
+    # seems to leave the loop at 1.23 s, and comes back over it at 1.6 s, after more than BRIDGE_S
+    calls, events = _drive(tm, 4.0, [(1, 41.8, lambda t: 0.5 if 1.05 <= t < 1.6 else 4.5, 0.0, 4.0)])
+    assert tm.channels()[0].count == 1 and len(events) == 1
+    assert events[0].t_on == pytest.approx(1.0, abs=0.041)
+
+
 def test_vehicle_not_spanning_count_line_does_not_count():
     site = make_site()
     tm = TrafficMeasures(site)
