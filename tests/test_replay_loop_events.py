@@ -31,10 +31,11 @@ def scene(tmp_path_factory) -> Path:
     return d
 
 
-def _truth_per_channel(d: Path) -> dict[int, int]:
+def _truth_per_channel(d: Path, since: float = float("-inf")) -> dict[int, int]:
     out: dict[int, int] = {}
     for r in csv.DictReader(open(d / "truth" / "loop_events.csv")):
-        out[int(r["channel"])] = out.get(int(r["channel"]), 0) + 1
+        if float(r["t_on"]) >= since:
+            out[int(r["channel"])] = out.get(int(r["channel"]), 0) + 1
     return out
 
 
@@ -62,3 +63,25 @@ def test_plain_replay_writes_loop_events(scene, tmp_path, suffix):
     report = roadwatch("evaluate", "--truth", str(scene / "truth"), "--results", str(out), cwd=repo)
     line = next(ln for ln in report.splitlines() if ln.startswith("Loop actuations"))
     assert "/0" not in line.replace("/0.", ""), line
+
+
+@pytest.mark.slow
+def test_tracked_loop_actuations_match_the_truth_in_dense_traffic(tmp_path):
+    """The vision pipeline's loop actuations against the truth's. A vehicle's group that comes apart over a
+    loop, or whose length estimate shrinks and grows back, must not give a second actuation. Measured here:
+    -2.5 % over the four loops (worst loop -3 of 36); without the loops' dropout bridging +5.7 % (worst +5
+    of 38). The 320 s sweep of the same preset, seed 11: -3 % .. +4 % per loop, +15 % without."""
+    repo = Path(__file__).resolve().parent.parent
+    d = tmp_path / "dense"
+    roadwatch("simulate", "--preset", "dense", "--seed", "2", "--seconds", "90", "--out", str(d), "-q", cwd=repo)
+    out = tmp_path / "r.sqlite"
+    roadwatch("replay", str(d / "video.mp4"), "--config", str(d / "site.toml"), "--out", str(out), cwd=repo)
+    # from 10 s on: the first seconds are lost to start-up (background, vehicles already in view)
+    with sqlite3.connect(out) as c:
+        got = dict(c.execute("SELECT channel, COUNT(*) FROM loop_events WHERE t_on >= 10 GROUP BY channel").fetchall())
+    want = _truth_per_channel(d, since=10.0)
+    total = sum(want.values())
+    assert total >= 120  # four lanes of dense traffic
+    for ch, n in want.items():
+        assert abs(got.get(ch, 0) - n) <= max(3, 0.1 * n), (got, want)
+    assert abs(sum(got.values()) - total) <= 0.04 * total, (got, want)
