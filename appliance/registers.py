@@ -105,7 +105,7 @@ HR_FORCE = 0
 _DEFAULT_CLASSES = ["motorcycle", "small", "medium", "large"]
 
 MAP: list[Field] = [
-    Field("di", DI_CALL, "call", "bit", "", "1 = call", "Live detector call of channel c (presence, or a pulse of pulse_ms per actuation in pulse mode; force-call and fail-safe applied)", "channel", MAX_CHANNELS),
+    Field("di", DI_CALL, "call", "bit", "", "1 = call", "Live detector call of channel c (presence, held through a dropout shorter than 0.2 s as a detector card's dropout filter holds it, so one vehicle is one actuation; or a pulse of pulse_ms per actuation in pulse mode; force-call and fail-safe applied)", "channel", MAX_CHANNELS),
     *[
         Field("di", DI_FAULT + int(f), f"fault_{f.name.lower()}", "bit", "", "1 = active", f"Health fault {f.name}")
         for f in HealthFault
