@@ -99,8 +99,8 @@ class VirtualLoop:
             t0, lo0, hi0 = t1, lo1, hi1
         else:
             t0, lo0, hi0 = prev[0], prev[1], prev[2]
-        p = self.active.get(vid)
         span = overlap_interval(lo0, hi0, lo1, hi1, self.y0, self.y1) if in_lane else None
+        p = self.active.get(vid)
         dt = t1 - t0
         out: list[LoopEvent] = []
         if p is None:
