@@ -243,18 +243,6 @@ class Grouper:
         self.state[:, slots] = UNSEEN
         self.fvid[slots] = -1
 
-    def detach(self, slots: np.ndarray) -> None:
-        """Part features from every other for good."""
-        self.state[slots, :] = APART
-        self.state[:, slots] = APART
-        self.fvid[slots] = -1
-
-    def joined_for_good(self, slots: np.ndarray, live: np.ndarray) -> np.ndarray:
-        """For each of slots: whether it is joined for good (MERGED) to a live feature of its own vehicle."""
-        st = np.maximum(self.state[np.ix_(slots, live)], self.state[np.ix_(live, slots)].T)
-        same = self.fvid[slots][:, None] == self.fvid[live][None, :]
-        return ((st == MERGED) & same).any(axis=1)
-
     def _assign_ids(self, live: np.ndarray) -> dict[int, np.ndarray]:
         labels = self.labels[live]
         order = np.argsort(labels, kind="stable")

@@ -44,10 +44,6 @@ HOLD_MIN_TRAVEL_M = 3.0  # ... and until it has moved this far (an occluder's ed
 STOP_LOSS_MPS = 8.0
 MAX_BRAKE_MPS2 = 12.0
 SETTLED_AGE = 5  # frames before a feature's speed counts
-# A settled feature joined to its vehicle for good, slower than this share of the vehicle's median speed
-# (the vehicle moving at least LEFT_BEHIND_MIN_MPS), was left behind on the road: it is parted from it
-LEFT_BEHIND_SHARE = 0.25
-LEFT_BEHIND_MIN_MPS = 5.0
 ALIGN_MIN_PX = 0.5  # camera shifts between frames below this leave the previous frame as it is (resampling
 # it would only blur it; a still camera's stabiliser jitters by a few hundredths of a pixel)
 
@@ -288,29 +284,9 @@ class VisionPipeline:
         tr.t_vmax[live[up]] = t
         lost = tr.vmax[live] - v
         halted = settled & (lost > STOP_LOSS_MPS) & (lost > MAX_BRAKE_MPS2 * (t - tr.t_vmax[live]))
-        self._part_left_behind(live, v, settled)
         drop = live[outside | static | wrong | halted]
         if len(drop):
             tr.kill(drop)
-
-    def _part_left_behind(self, live: np.ndarray, v: np.ndarray, settled: np.ndarray) -> None:
-        """Part from its vehicle a settled feature joined to it for good but far slower than the median of
-        its settled features: left on the road while the vehicle went on. (A receding vehicle's flank part,
-        joined to it when it entered at the image bottom, may hold corners born there on the road; they held
-        the vehicle's near end back: speeds of 0 km/h, lengths growing a metre a frame.) A vehicle's features
-        all move at least at its speed; higher ones faster in projection."""
-        fv = self.grouper.fvid[live]
-        ok = settled & (fv >= 0)
-        if not ok.any():
-            return
-        ids, inv, n = np.unique(fv[ok], return_inverse=True, return_counts=True)
-        order = np.lexsort((v[ok], inv))  # by vehicle, then speed
-        start = np.concatenate(([0], np.cumsum(n)[:-1]))
-        med = v[ok][order][start + n // 2]  # each vehicle's (upper) median speed
-        slow = (v[ok] < LEFT_BEHIND_SHARE * med[inv]) & (med[inv] >= LEFT_BEHIND_MIN_MPS) & (n[inv] >= 3)
-        cand = live[np.flatnonzero(ok)[slow]]
-        if len(cand):
-            self.grouper.detach(cand[self.grouper.joined_for_good(cand, live)])
 
     def _aligned_prev(self) -> np.ndarray:
         """The previous frame moved by the camera's shift since then, so that static scenery lines up with the

@@ -413,35 +413,3 @@ def test_a_feature_stopping_faster_than_a_vehicle_brakes_is_dropped(site):
     gone = next(t for t, a, _ in alive_at if not a)
     assert gone <= 0.3, alive_at[:10]
     assert all(b for _, _, b in alive_at), [x for x in alive_at if not x[2]][:3]
-
-
-@pytest.mark.parametrize("speed,link,parted", [(25.0, "merged", True), (25.0, "linked", False), (3.0, "merged", False)])
-def test_a_feature_left_behind_by_its_vehicle_is_parted_from_it(site, speed, link, parted):
-    """A receding vehicle enters at the image bottom; corners born there on the road join its flank's group,
-    which joins the vehicle for good. They stay while the vehicle drives on and held its near end back
-    (crossing speeds of 0 km/h, lengths growing 1 m a frame). Joined for good and slower than a quarter of
-    the vehicle's median, such a feature is parted from it (alive: a new corner in its place would join the
-    next vehicle passing). A merely linked one is left to the pair test; in a queue crawling at 3 m/s
-    nothing is judged (speeds there are too uncertain)."""
-    from appliance.grouping import APART, LINKED, MERGED
-
-    pipe = VisionPipeline(site)
-    tr = pipe.tracker
-    slots = np.arange(6)
-    tr.alive[slots] = True
-    tr.age[slots] = 10
-    tr.lane[slots] = 1
-    tr.born_t[slots] = 0.0
-    tr.max_disp[slots] = 100.0
-    tr.s[slots] = (-1.75, 40.0, 0.0, -speed)
-    tr.s[5, 3] = -0.1 * speed  # left behind
-    g = pipe.grouper
-    g.fvid[slots] = 7
-    g.state[np.triu_indices(6, 1)] = MERGED if link == "merged" else LINKED
-    g.fvid[4] = -1  # not in a vehicle: not judged here
-    tr.s[4, 3] = 0.0
-    pipe._drop_features(0.5)
-    assert tr.alive[slots].all()
-    assert (g.state[:5, 5] == APART).all() == parted
-    assert g.fvid[5] == (-1 if parted else 7)
-    assert (g.state[:4, :4][np.triu_indices(4, 1)] != APART).all()
