@@ -48,7 +48,7 @@ class Background:
         """True when the points pts are on a shadow that reaches the caster's points in the image: the
         road between the two, across the rows they share, is shadowed too (two vehicles side by side
         have sunlit road between them)."""
-        if not self.is_shadow(img, pts) or len(caster) == 0:
+        if len(caster) == 0 or not self.is_shadow(img, pts):
             return False
         r0 = int(max(pts[:, 1].min(), caster[:, 1].min()))
         r1 = int(np.ceil(min(pts[:, 1].max(), caster[:, 1].max()))) + 1
