@@ -24,9 +24,10 @@ NEAR_REP_M = 3.0  # features this close along the road to the representative one
 MAX_LEAD_M = 1.5  # how far the reported near end may run ahead of the lowest feature
 MIN_TRAVEL_M = 1.0  # a group is reported once it has moved this far (static texture never does)
 MIN_SPEED_MPS = 1.5  # ... and is moving at least this fast (vehicles are found while they move)
-# A group not yet reported that has stood still this long (within STILL_M) starts its trajectory afresh:
-# features on an occluder's edge where vehicles emerge, joined by the vehicle once it comes out, must not
-# date the vehicle's entry back to when the edge was first seen
+# A group not yet reported whose near end has stood still this long (within STILL_M) starts its trajectory
+# afresh, also after it moved a little: features on an occluder's edge where vehicles emerge (dragged a
+# metre by the vehicle that passed behind it, then stuck), joined by the next vehicle once it comes out,
+# must not date that vehicle's entry back to when the edge was first seen
 STILL_S = 0.4
 STILL_M = 0.5
 # A reported group standing still this long that a vehicle of its lane then drives through is clutter
@@ -360,7 +361,7 @@ class Grouper:
             tr.trajectory.append((t, st.x, rep_y))
             if not abs(rep_y - tr.still_y) <= STILL_M:
                 tr.still_y, tr.still_t = rep_y, t
-            if not tr.reported and abs(rep_y - tr.start_y) < STILL_M and t - tr.trajectory[0][0] >= STILL_S:
+            if not tr.reported and t - tr.still_t >= STILL_S:
                 tr.trajectory = tr.trajectory[-1:]
                 tr.start_y = rep_y
             moved = abs(rep_y - tr.start_y) >= MIN_TRAVEL_M and abs(vy) >= MIN_SPEED_MPS
