@@ -20,6 +20,14 @@ from appliance.types import VehicleState
 from appliance.zones import SiteZones
 
 UNSEEN, LINKED, APART, MERGED = 0, 1, 2, 3  # MERGED: a fragment joined to its vehicle for good
+SETTLED_AGE = 5  # frames before a feature's speed counts
+# A feature's motion when a pair is first seen: STANDING below STANDING_MPS once STANDING_AGE frames old
+# (scenery, an occluder's edge, a queued vehicle: long enough that a new feature's unsettled speed is not
+# taken for it), MOVING above MOVING_MPS, else unsure (0)
+STANDING, MOVING = 1, 2
+STANDING_AGE = 5
+STANDING_MPS = 1.0
+MOVING_MPS = 4.0
 NEAR_REP_M = 3.0  # features this close along the road to the representative one give the velocity
 MAX_LEAD_M = 1.5  # how far the reported near end may run ahead of the lowest feature
 MIN_TRAVEL_M = 1.0  # a group is reported once it has moved this far (static texture never does)
@@ -70,15 +78,16 @@ SIDE_MAX_WIDTH_M = 3.5  # joint footprint width (two cars side by side span >= 5
 SHADOW_MAX_WIDTH_M = 9.0
 SHADOW_GAP_M = 4.0
 SHADOW_DY_M = 6.0
-SHADOW_SPEED_TOL = 0.25  # a new group's features have not settled to its speed yet
+SHADOW_SPEED_TOL = 0.3  # a new group's features have not settled to its speed yet
 
 
 @njit(cache=True)
-def pair_update(live, s, lane, state, rng, y0, conn_x, conn_y, seg_x, seg_y, seg_rel):
+def pair_update(live, s, lane, motion, state, rng, y0, conn_x, conn_y, seg_x, seg_y, seg_rel):
     """Update the pair graph over the live slots. Only features born in the same lane may link (side by
     side vehicles stay apart); a tall vehicle's top seen in the next lane is joined later as a fragment.
-    rng[i, j] = (min dx, max dx, min dy, max dy) of the pair distance since linking; y0[i, j] = Y of the
-    lower slot at linking (for the travelled distance)."""
+    Nor do a standing and a moving feature (motion STANDING and MOVING): a vehicle passing what stands
+    still is not one object with it. rng[i, j] = (min dx, max dx, min dy, max dy) of the pair distance since
+    linking; y0[i, j] = Y of the lower slot at linking (for the travelled distance)."""
     n = live.shape[0]
     for a in range(n):
         i = live[a]
@@ -92,7 +101,8 @@ def pair_update(live, s, lane, state, rng, y0, conn_x, conn_y, seg_x, seg_y, seg
             dy = s[j2, 1] - s[i2, 1]
             st = state[i2, j2]
             if st == UNSEEN:
-                if lane[i2] == lane[j2] and lane[i2] > 0 and abs(dx) < conn_x and abs(dy) < conn_y:
+                if (lane[i2] == lane[j2] and lane[i2] > 0 and abs(dx) < conn_x and abs(dy) < conn_y
+                        and motion[i2] * motion[j2] != STANDING * MOVING):
                     state[i2, j2] = LINKED
                     rng[i2, j2, 0] = dx
                     rng[i2, j2, 1] = dx
@@ -147,6 +157,15 @@ def components(live, state, labels):
             r = parent[r]
         parent[a] = r
         labels[live[a]] = live[r]
+
+
+def motion_class(s: np.ndarray, age: np.ndarray) -> np.ndarray:
+    """Per feature slot: STANDING, MOVING or 0 (see pair_update)."""
+    v = np.abs(s[:, 3])
+    m = np.zeros(len(s), np.int8)
+    m[(v < STANDING_MPS) & (age >= STANDING_AGE)] = STANDING
+    m[v > MOVING_MPS] = MOVING
+    return m
 
 
 def _extent(o: VehicleState, length: float | None = None) -> tuple[float, float]:
@@ -285,7 +304,7 @@ class Grouper:
         pending: list = []
         self.merged_now = set()
         if len(live):
-            pair_update(live, s, lane, self.state, self.rng, self.y0, p.connection_lateral_m, p.connection_m,
+            pair_update(live, s, lane, motion_class(s, age), self.state, self.rng, self.y0, p.connection_lateral_m, p.connection_m,
                         p.segmentation_lateral_m, p.segmentation_m, p.segmentation_per_m)
             components(live, self.state, self.labels)
             groups = self._assign_ids(live)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 UNSEEN, LINKED, APART, MERGED = 0, 1, 2, 3
+STANDING, MOVING = 1, 2
 
 
 def ncc_ref(img: np.ndarray, tmpl: np.ndarray, cx: int, cy: int) -> float:
@@ -98,7 +99,7 @@ def select_spaced_ref(cand_xy: np.ndarray, live_xy: np.ndarray, spacing: float, 
     return picked
 
 
-def pair_update_ref(live, s, lane, state, rng, y0, conn_x, conn_y, seg_x, seg_y, seg_rel) -> None:
+def pair_update_ref(live, s, lane, motion, state, rng, y0, conn_x, conn_y, seg_x, seg_y, seg_rel) -> None:
     """Same contract as grouping.pair_update, vectorised over the upper triangle."""
     live = np.sort(np.asarray(live))
     I, J = np.triu_indices(len(live), 1)
@@ -108,6 +109,7 @@ def pair_update_ref(live, s, lane, state, rng, y0, conn_x, conn_y, seg_x, seg_y,
     st = state[i, j]
     new = st == UNSEEN
     link = new & (lane[i] == lane[j]) & (lane[i] > 0) & (np.abs(dx) < conn_x) & (np.abs(dy) < conn_y)
+    link &= motion[i].astype(int) * motion[j] != STANDING * MOVING
     state[i[new], j[new]] = np.where(link[new], LINKED, APART)
     for k, v in enumerate((dx, dx, dy, dy)):
         rng[i[link], j[link], k] = v[link]

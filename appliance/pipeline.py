@@ -15,7 +15,7 @@ import numpy as np
 from appliance.background import Background
 from appliance.config import SiteConfig
 from appliance.corners import CornerDetector
-from appliance.grouping import Grouper
+from appliance.grouping import SETTLED_AGE, Grouper
 from appliance.stabilise import Stabiliser
 from appliance.tracker import FeatureTracker
 from appliance.types import Frame, VehicleState
@@ -43,7 +43,6 @@ HOLD_MIN_TRAVEL_M = 3.0  # ... and until it has moved this far (an occluder's ed
 # (an occluder's edge where vehicles pass behind it): it is dropped.
 STOP_LOSS_MPS = 8.0
 MAX_BRAKE_MPS2 = 12.0
-SETTLED_AGE = 5  # frames before a feature's speed counts
 ALIGN_MIN_PX = 0.5  # camera shifts between frames below this leave the previous frame as it is (resampling
 # it would only blur it; a still camera's stabiliser jitters by a few hundredths of a pixel)
 
@@ -104,7 +103,7 @@ class VisionPipeline:
         select_spaced(np.zeros((3, 2)), np.zeros((1, 2)), 4.0, 2, np.zeros(2, np.int64))
         live = np.arange(n, dtype=np.int64)
         state = np.zeros((n, n), np.int8)
-        pair_update(live, s, np.ones(n, np.int32), state, np.zeros((n, n, 4), np.float32),
+        pair_update(live, s, np.ones(n, np.int32), np.zeros(n, np.int8), state, np.zeros((n, n, 4), np.float32),
                     np.zeros((n, n), np.float32), 2.5, 5.0, 1.0, 2.0, 0.1)
         components(live, state, np.zeros(n, np.int64))
 

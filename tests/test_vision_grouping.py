@@ -168,3 +168,43 @@ def test_a_still_group_that_a_vehicle_drives_through_is_dropped():
     last_t = seen[still[0]][-1].t
     assert last_t < 3.2, last_t  # dropped when the car went through it, not kept standing there
     assert _counted(seen) == 1  # the car, once
+
+
+def test_a_vehicle_passing_a_standing_feature_is_never_grouped_with_it():
+    """A corner left standing on an overhead sign's edge (settled, not moving) must not join the next
+    vehicle that emerges beside it: features first seen together link when they are close, and this one
+    would hold the vehicle's group back. New features on a vehicle that stands in a queue (not moving
+    either) still join it."""
+    site = parse_site(site_dict())
+    g = Grouper(site.tracking, SiteZones(site))
+    n = site.tracking.max_features
+    s, px = np.zeros((n, 4)), np.zeros((n, 2))
+    lane, alive, age = np.zeros(n, np.int32), np.zeros(n, np.bool_), np.zeros(n, np.int32)
+    edge = 0  # the standing corner at Y = 60
+    car = np.arange(1, 7)  # the emerging car's corners, born 1-2 m from it, moving at 15 m/s
+    queued = np.arange(7, 13)  # a car standing in the next lane: 4 corners, then 2 more born on it
+    pts = _box(0.6, 2.4, 56.0, 59.5, len(car), 6)
+    q_pts = _box(-2.9, -1.1, 50.0, 54.0, len(queued), 7)
+    shared = []
+    for f in range(40):
+        t = f * DT
+        s[edge], px[edge], lane[edge], alive[edge], age[edge] = (1.5, 60.0, 0.0, 0.0), (1.5, -60.0), 2, True, f
+        if f >= 10:
+            if f == 10:
+                g.reset_slots(car)
+            d = -15.0 * (t - 10 * DT)
+            for i, (x, y) in zip(car, pts):
+                s[i], px[i] = (x, y + d, 0.0, -15.0), (x, -(y + d))
+                lane[i], alive[i], age[i] = 2, True, f - 10
+        for k, (i, (x, y)) in enumerate(zip(queued, q_pts)):
+            born = 0 if k < 4 else 20
+            if f >= born:
+                if f == born:
+                    g.reset_slots(np.array([i]))
+                s[i], px[i] = (x, y, 0.0, 0.0), (x, -y)
+                lane[i], alive[i], age[i] = 1, True, f - born
+        g.step(t, s, px, lane, alive, age)
+        if f >= 10 and g.fvid[edge] >= 0 and g.fvid[edge] in g.fvid[car]:
+            shared.append(round(t, 2))
+    assert not shared, f"the standing corner was grouped with the passing car at t = {shared}"
+    assert len(set(g.fvid[queued].tolist())) == 1, "new corners on a standing car stay apart from it"

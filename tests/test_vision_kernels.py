@@ -121,8 +121,9 @@ def test_pair_graph_and_components_match_reference():
         t = f * 0.04
         s = np.zeros((n, 4))
         s[:, :2] = base + offs[veh] + np.column_stack([np.zeros(n), speed[veh] * t]) + rng.normal(0, 0.03, (n, 2))
-        pair_update(live, s, lane, st_a, rng_a, y0a, 2.5, 5.0, 1.0, 0.5, 0.02)
-        ref.pair_update_ref(live, s, lane, st_b, rng_b, y0b, 2.5, 5.0, 1.0, 0.5, 0.02)
+        motion = rng.integers(0, 3, n).astype(np.int8)  # standing / moving labels at random: the rule is the same
+        pair_update(live, s, lane, motion, st_a, rng_a, y0a, 2.5, 5.0, 1.0, 0.5, 0.02)
+        ref.pair_update_ref(live, s, lane, motion, st_b, rng_b, y0b, 2.5, 5.0, 1.0, 0.5, 0.02)
         np.testing.assert_array_equal(st_a, st_b)
     labels = np.full(n, -1, np.int64)
     components(live, st_a, labels)
