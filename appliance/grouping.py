@@ -21,11 +21,9 @@ from appliance.zones import SiteZones
 
 UNSEEN, LINKED, APART, MERGED = 0, 1, 2, 3  # MERGED: a fragment joined to its vehicle for good
 SETTLED_AGE = 5  # frames before a feature's speed counts
-# A feature's motion when a pair is first seen: STANDING below STANDING_MPS once STANDING_AGE frames old
-# (scenery, an occluder's edge, a queued vehicle: long enough that a new feature's unsettled speed is not
-# taken for it), MOVING above MOVING_MPS, else unsure (0)
+# A feature's motion when a pair is first seen: STANDING below STANDING_MPS once settled (scenery, an
+# occluder's edge, a queued vehicle), MOVING above MOVING_MPS, else unsure (0)
 STANDING, MOVING = 1, 2
-STANDING_AGE = 5
 STANDING_MPS = 1.0
 MOVING_MPS = 4.0
 NEAR_REP_M = 3.0  # features this close along the road to the representative one give the velocity
@@ -163,7 +161,7 @@ def motion_class(s: np.ndarray, age: np.ndarray) -> np.ndarray:
     """Per feature slot: STANDING, MOVING or 0 (see pair_update)."""
     v = np.abs(s[:, 3])
     m = np.zeros(len(s), np.int8)
-    m[(v < STANDING_MPS) & (age >= STANDING_AGE)] = STANDING
+    m[(v < STANDING_MPS) & (age >= SETTLED_AGE)] = STANDING
     m[v > MOVING_MPS] = MOVING
     return m
 
@@ -304,8 +302,8 @@ class Grouper:
         pending: list = []
         self.merged_now = set()
         if len(live):
-            pair_update(live, s, lane, motion_class(s, age), self.state, self.rng, self.y0, p.connection_lateral_m, p.connection_m,
-                        p.segmentation_lateral_m, p.segmentation_m, p.segmentation_per_m)
+            pair_update(live, s, lane, motion_class(s, age), self.state, self.rng, self.y0, p.connection_lateral_m,
+                        p.connection_m, p.segmentation_lateral_m, p.segmentation_m, p.segmentation_per_m)
             components(live, self.state, self.labels)
             groups = self._assign_ids(live)
         # shadow(group slots, host id): the image test for a group lying only on the host's shadow
