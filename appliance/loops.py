@@ -107,8 +107,9 @@ class VirtualLoop:
             if span is None:
                 return out
             t_on = t0 + span[0] * dt if was_in_lane else t1
-            if self.act is not None and not self.active and t_on > self.act["t_off"] + BRIDGE_S:
-                out += [ev for ev in [self._emit()] if ev is not None]
+            ev = self.tick(t_on)  # the loop was free long enough: the last actuation is over
+            if ev is not None:
+                out.append(ev)
             p = self.active[vid] = _Presence(t_on, t_on + offset)
             self.on_times[vid] = t_on
             if self.act is None:
