@@ -61,8 +61,10 @@ class EdieAccumulator:
             self.sums[p] = np.zeros((2, len(self.lane_ids)))
         return self.sums[p]
 
-    def add(self, lanes: np.ndarray, w0: np.ndarray, w1: np.ndarray, y0: np.ndarray, y1: np.ndarray) -> None:
-        """Add segments (wall times w0->w1, front y0->y1) each in lane ``lanes[i]`` (lane ids)."""
+    def add(self, lanes: np.ndarray, w0: np.ndarray, w1: np.ndarray, y0: np.ndarray, y1: np.ndarray,
+            sign: float = 1.0) -> None:
+        """Add segments (wall times w0->w1, front y0->y1) each in lane ``lanes[i]`` (lane ids); sign -1
+        takes back segments added before."""
         if len(lanes) == 0:
             return
         li = np.array([self.index[int(x)] for x in lanes])
@@ -70,7 +72,7 @@ class EdieAccumulator:
         keep = tb > ta
         if not np.any(keep):
             return
-        li, ta, tb, dist = li[keep], ta[keep], tb[keep], dist[keep]
+        li, ta, tb, dist = li[keep], ta[keep], tb[keep], dist[keep] * sign
         pa = np.floor(ta / self.period_s) * self.period_s
         pb = np.floor(np.nextafter(tb, -np.inf) / self.period_s) * self.period_s
         same = pa == pb
@@ -78,7 +80,7 @@ class EdieAccumulator:
             m = same & (pa == p)
             b = self._bucket(float(p))
             np.add.at(b[0], li[m], dist[m])
-            np.add.at(b[1], li[m], tb[m] - ta[m])
+            np.add.at(b[1], li[m], (tb[m] - ta[m]) * sign)
         for i in np.flatnonzero(~same):  # segments straddling a period boundary: rare
             span = tb[i] - ta[i]
             p = period_start(float(ta[i]), self.period_s)
@@ -87,7 +89,7 @@ class EdieAccumulator:
                 if b_ > a:
                     bucket = self._bucket(p)
                     bucket[0, li[i]] += dist[i] * (b_ - a) / span
-                    bucket[1, li[i]] += b_ - a
+                    bucket[1, li[i]] += (b_ - a) * sign
                 p += self.period_s
 
     def take(self, p: float) -> np.ndarray:

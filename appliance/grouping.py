@@ -204,7 +204,6 @@ class VehicleTrack:
     n_now: int = 0
     own_length: float = 0.0  # the group's length before fragments joined it
     merged: bool = False
-    side: bool = False  # a part in the next lane joined it: its place across the road is its low features' median
     votes: tuple[int, int, float] = (0, 0, 0.0)  # (candidate host, consecutive frames it matched, place on it)
     ground_lens: list[tuple[float, float]] = field(default_factory=list)  # (distance, height-corrected length)
     ground: tuple[float, float] | None = None  # reported length and far end on the road
@@ -246,7 +245,6 @@ class Grouper:
         self.next_vid = 1
         self.finished_total = 0
         self._place = 0.0
-        self._side = False
         self.merged_now: set[int] = set()  # groups joined to another vehicle in the last step (for the pipeline's hold)
         self.recent: list[tuple[VehicleState, float, float]] = []  # finished vehicles, for their leftovers
         cam = zones.camera  # (X, Y, height) of the camera, or None
@@ -313,7 +311,7 @@ class Grouper:
             if vid not in groups:
                 tr = self.tracks.pop(vid)
                 if self._qualifies_on_loss(tr):
-                    out.append(self._finish(tr))
+                    out.append(self._finish(tr, exited=False))
         for vid, members in groups.items():
             lanes = lane[members]
             tr = self.tracks.get(vid)
@@ -365,9 +363,7 @@ class Grouper:
             vy = vy_near
             low = members[np.abs(ys - s[rep, 1]) < NEAR_REP_M]  # the low part: the footprint across the road
             tr.x_lo, tr.x_hi = float(s[low, 0].min()), float(s[low, 0].max())
-            x = float(s[rep, 0])
-            if tr.side:
-                x = _median(s[low, 0])
+            x = _median(s[low, 0])  # its place across the road (a lowest corner may lie at its side)
             st = VehicleState(
                 id=vid, t=t, x=x, y_front=front, y_rear=rear, vx=vx,
                 vy=vy, length=length, n_features=int(len(members)),
@@ -386,7 +382,7 @@ class Grouper:
                 self.tracks.pop(vid)
                 retire.append(members)
                 if tr.reported:
-                    out.append(self._finish(tr))
+                    out.append(self._finish(tr, exited=True))
                 continue
             if tr.reported and t - tr.report_t > RECHECK_S:
                 out.append(st)
@@ -414,8 +410,6 @@ class Grouper:
                 self._link(members, groups[host])
                 self.fvid[members] = host
                 self.tracks[host].merged = True
-                if self._side:
-                    self.tracks[host].side = True
                 self.merged_now.add(tr.id)
                 self.tracks.pop(tr.id)
                 continue
@@ -499,7 +493,6 @@ class Grouper:
         if tr.reported:
             mv = tr.mean_vy(st.vy)
             vy = mv if abs(mv) >= abs(st.vy) else st.vy
-        self._side = False
         self.recent = [r for r in self.recent if st.t - r[0].t <= GHOST_S]
         for o, x_lo, x_hi in [] if tr.reported else self.recent:
             if o.vy * vy <= 0 or not 0.85 <= vy / o.vy <= 2.5:
@@ -513,7 +506,6 @@ class Grouper:
                 return GHOST
         side = self._side_host(tr, st, y, vy, members, sign, shadow)
         if side is not None:
-            self._side = True
             return side
         for vid, other in self.tracks.items():
             o = other.last
@@ -595,8 +587,8 @@ class Grouper:
         d0, d1 = lz.detection_y
         return y < d0 if lz.sign < 0 else y > d1
 
-    def _finish(self, tr: VehicleTrack) -> VehicleState:
+    def _finish(self, tr: VehicleTrack, exited: bool) -> VehicleState:
         st = tr.last
         self.finished_total += 1
         self.recent.append((st, tr.x_lo, tr.x_hi))
-        return self._grounded(replace(st, finished=True, trajectory=None), tr.ground)
+        return self._grounded(replace(st, finished=True, exited=exited, trajectory=None), tr.ground)

@@ -19,6 +19,8 @@ LOST_AFTER_S = 2.0  # a vehicle not seen for this long (and never finished) is f
 # 0.3 s are practically never seen on real roads.
 MIN_HEADWAY_S = 0.3
 MAX_TRAJECTORY_POINTS = 2000
+CARRY_SPEED_STATES = 25  # a vehicle finalised inside its region drives on at the median speed of its last states
+CARRY_MIN_SPEED = 1.0  # m/s; slower ones are not carried on
 
 
 @dataclass
@@ -57,6 +59,8 @@ class _Track:
     counted_lane: int | None = None  # lane of its first count-line crossing
     counted: set = field(default_factory=set)  # lanes whose count line it crossed (staggered lines)
     trajectory: list[tuple[float, float, float]] = field(default_factory=list)
+    segs: list[tuple] = field(default_factory=list)  # its Edie segments (lane, w0, w1, y0, y1)
+    family: int | None = None  # id of the vehicle it was found a duplicate of (see _check_crossing)
 
 
 def _states_of(v: VehicleState) -> list[VehicleState]:
@@ -98,6 +102,8 @@ class TrafficMeasures:
         self.tracks: dict[int, _Track] = {}
         self.crossings: dict[int, list[Crossing]] = {lane: [] for lane in self.lanes.ids}
         self.last_crossing: dict[int, float] = {}  # lane -> capture time of its last crossing
+        self.last_crossing_id: dict[int, int] = {}  # lane -> the vehicle that crossed then
+        self.family_until: dict[int, float] = {}  # duplicate family id -> wall time its Edie covers up to
         self.merged_crossings = 0  # crossings taken as fragments of the vehicle just before
         self.partial_periods: set[float] = set()
         self.keep_trajectories = bool(site.store.trajectories)
@@ -141,6 +147,8 @@ class TrafficMeasures:
                 k += 1
                 seg = self._advance(s, raw, offset, out)
                 if seg is not None:
+                    seg = self._edie_segment(self.tracks[v.id], seg)
+                if seg is not None:
                     seg_lane.append(seg[0]); seg_w0.append(seg[1]); seg_w1.append(seg[2])
                     seg_y0.append(seg[3]); seg_y1.append(seg[4])
             if v.finished:
@@ -149,6 +157,7 @@ class TrafficMeasures:
                       np.array(seg_y0), np.array(seg_y1))
         for vid in [vid for vid, tr in self.tracks.items() if vid not in seen and t - tr.prev[0] > LOST_AFTER_S]:
             tr = self.tracks.pop(vid)
+            self._forget(tr)
             for lp in self.loops:
                 ev = lp.drop(vid, tr.prev[0])
                 if ev is not None:
@@ -217,9 +226,13 @@ class TrafficMeasures:
             return
         tr.counted.add(lane_c)
         last = self.last_crossing.get(lane_c)
-        self.last_crossing[lane_c] = max(tc, last) if last is not None else tc
+        last_id = self.last_crossing_id.get(lane_c)
+        if last is None or tc >= last:
+            self.last_crossing[lane_c], self.last_crossing_id[lane_c] = tc, v.id
         if last is not None and abs(tc - last) < MIN_HEADWAY_S:
             self.merged_crossings += 1
+            if last_id is not None and last_id != v.id:
+                self._duplicate(v.id, tr, last_id, offset)
             return
         if tr.counted_lane is None:
             tr.counted_lane = lane_c
@@ -227,10 +240,80 @@ class TrafficMeasures:
         self.crossings[lane_c].append(cr)
         out.crossings.append(cr)
 
+    def _duplicate(self, vid: int, tr: _Track, other_id: int, offset: float) -> None:
+        """Vehicle ``vid`` is another group on vehicle ``other_id`` (their fronts crossed the count line
+        together): from the time both were tracked, Edie counts the pair's distance and time once. Its
+        segments since then are taken back (as far as the period in progress), and from now on a segment
+        of either counts only for the time not yet covered by the other."""
+        other = self.tracks.get(other_id)
+        fam = other.family if other is not None and other.family is not None else other_id
+        if tr.family is not None:
+            return
+        tr.family = fam
+        since = other.first_wall if other is not None else tr.prev[0] + offset
+        if self.clock.current is not None:
+            since = max(since, self.clock.current)
+        back = [sg for sg in tr.segs if sg[2] > since]
+        if back:
+            lanes, w0, w1, y0, y1 = (np.array(c, dtype=float) for c in zip(*back))
+            f = np.clip((since - w0) / np.maximum(w1 - w0, 1e-9), 0.0, 1.0)
+            self.edie.add(lanes.astype(np.int64), w0 + f * (w1 - w0), w1, y0 + f * (y1 - y0), y1, sign=-1.0)
+        tr.segs.clear()
+        covered = [tr.prev[0] + offset] + ([other.prev[0] + offset] if other is not None else [])
+        self.family_until[fam] = max(self.family_until.get(fam, -np.inf), min(covered))
+        if other is not None and other.family is None:
+            other.family = fam
+
+    def _edie_segment(self, tr: _Track, seg: tuple) -> tuple | None:
+        """A vehicle's Edie segment as counted: a duplicate's only for the time its family has not covered."""
+        if tr.family is None:
+            tr.segs.append(seg)
+            return seg
+        lane, w0, w1, y0, y1 = seg
+        until = self.family_until.get(tr.family, -np.inf)
+        self.family_until[tr.family] = max(until, w1)
+        if w1 <= until:
+            return None
+        if w0 < until:
+            f = (until - w0) / (w1 - w0)
+            return lane, until, w1, y0 + f * (y1 - y0), y1
+        return seg
+
+    def _carry_on(self, v: VehicleState, tr: _Track, offset: float) -> None:
+        """A vehicle finalised at an exit zone that begins before the end of its lane's Edie region (far
+        away, where vehicles are small) drives on to that end: its remaining distance and time are added at
+        its recent speed, as the pipeline's backfill adds the stretch before a vehicle was first seen. One
+        lost on the way is not: it may be found again as a new vehicle."""
+        if not v.exited:
+            return
+        lane = tr.lane_raw if tr.lane_raw is not None else tr.history.lane
+        if lane is None:
+            return
+        sign = self.lanes.sign[lane]
+        speed = float(np.median(tr.speeds[-CARRY_SPEED_STATES:]))
+        if v.vy * sign <= 0 or speed < CARRY_MIN_SPEED:
+            return
+        ylo, yhi = self.region[lane]
+        end = yhi if sign > 0 else ylo
+        gap = (end - v.y_front) * sign
+        if gap <= 0 or not ylo <= v.y_front <= yhi:
+            return
+        w0 = v.t + offset
+        seg = self._edie_segment(tr, (lane, w0, w0 + gap / speed, v.y_front, end))
+        if seg is not None:
+            self.edie.add(np.array([seg[0]], dtype=np.int64), *(np.array([c]) for c in seg[1:]))
+
+    def _forget(self, tr: _Track) -> None:
+        """Drop a family's bookkeeping once its last track has ended."""
+        if tr.family is not None and not any(o.family == tr.family for o in self.tracks.values()):
+            self.family_until.pop(tr.family, None)
+
     def _finish(self, v: VehicleState, offset: float, out: MeasureUpdate) -> None:
         tr = self.tracks.pop(v.id, None)
         if tr is None:
             return
+        self._carry_on(v, tr, offset)
+        self._forget(tr)
         for lp in self.loops:
             ev = lp.drop(v.id, v.t)
             if ev is not None:

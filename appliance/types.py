@@ -30,17 +30,19 @@ class VehicleState:
 
     id: int
     t: float
-    x: float  # lateral road position of the representative point (m)
+    x: float  # lateral road position: the middle (median) of its low features across the road (m)
     y_front: float  # along-road position of the vehicle's front in its direction of travel (m)
     y_rear: float  # along-road position of its rear (m)
     vx: float  # road velocity (m/s)
     vy: float
     length: float  # length estimate (m)
     n_features: int
-    finished: bool = False  # True once, when the vehicle is finalised at the exit zone
+    finished: bool = False  # True once, when the vehicle is finalised (see exited)
     # optional: its earlier (t, x, y_front) points, given with a vehicle's first report so that the
     # measures can count a line crossed before the vehicle was reported
     trajectory: list[tuple[float, float, float]] | None = None
+    exited: bool = False  # finished at the exit zone (a vehicle lost after leaving the detection zone is
+    # finished too, where it was last seen)
 
 
 @dataclass(slots=True)

@@ -345,3 +345,41 @@ def test_overlapping_presences_make_one_actuation():
     assert events[0].t_on == pytest.approx(0.22, abs=1e-9)  # front reaches 31.8 m
     assert events[0].t_off == pytest.approx(0.67, abs=1e-9)  # rear leaves 30 m
     assert tm.channels()[0].count == 1
+
+
+@pytest.mark.parametrize("host_span, frag_span", [((0.0, 5.0), (0.5, 4.5)), ((1.5, 5.0), (0.0, 4.5)),
+                                                  ((0.0, 3.0), (0.5, 5.0))])
+def test_two_groups_on_one_vehicle_add_its_distance_and_time_once(host_span, frag_span):
+    """A vehicle tracked by two groups at once (one crossing the count line 0.015 s after the other, so
+    counted once) adds Edie's d(A) and t(A) once over the time either group covers, whichever came first.
+    Lane 1's region is 60 m long (y 80 -> 20), crossed at 20 m/s from t = 1 s to 4 s."""
+    site = make_site(loops=[])
+    tm = TrafficMeasures(site)
+    crossings = []
+    for i in range(int(5.0 * 25) + 1):
+        t = i / 25
+        y = 100.0 - 20.0 * t
+        vs = []
+        if host_span[0] <= t <= host_span[1]:
+            vs.append(VehicleState(1, t, -2.5, y, y + 4.5, 0, -20, 4.5, 8))
+        if frag_span[0] <= t <= frag_span[1]:
+            vs.append(VehicleState(2, t, -2.4, y + 0.3, y + 1.3, 0, -20, 1.0, 4))
+        crossings += tm.step(t, EPOCH + t, vs).crossings
+    assert len(crossings) == 1 and tm.merged_crossings == 1
+    dist, time = tm.edie.peek(EPOCH)[:, 0]
+    assert dist == pytest.approx(60.0, abs=0.5)
+    assert time == pytest.approx(3.0, abs=0.03)
+
+
+def test_a_vehicle_finalised_inside_the_region_drives_on_to_its_end():
+    """A receding vehicle finalised at y = 69.6 m (the exit zone may begin inside the Edie region, 20-80 m)
+    adds the 10 m it still drives to the region's end at its speed: d(A) = 60 m, t(A) = 3 s at 20 m/s."""
+    site = make_site(loops=[])
+    tm = TrafficMeasures(site)
+    for i in range(88):
+        t = i / 25
+        y = 20.0 * t
+        tm.step(t, EPOCH + t, [VehicleState(7, t, 2.5, y, y - 4.5, 0, 20, 4.5, 8, finished=i == 87, exited=i == 87)])
+    dist, time = tm.edie.peek(EPOCH)[:, 1]
+    assert dist == pytest.approx(60.0, abs=0.1)
+    assert time == pytest.approx(3.0, abs=0.01)

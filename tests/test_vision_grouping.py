@@ -208,3 +208,14 @@ def test_a_vehicle_passing_a_standing_feature_is_never_grouped_with_it():
             shared.append(round(t, 2))
     assert not shared, f"the standing corner was grouped with the passing car at t = {shared}"
     assert len(set(g.fvid[queued].tolist())) == 1, "new corners on a standing car stay apart from it"
+
+
+def test_a_vehicles_place_across_the_road_is_its_footprints_middle_not_its_lowest_corner():
+    """The measures place a vehicle in a lane by its x. Its lowest feature (the representative point) may be a
+    corner at its side, here 0.2 m inside lane 2 (0 - 3.5 m) on a car spanning 0.2 - 2.0 m: its x is the
+    middle of its low features (about 1.1 m), so it is never taken for a vehicle of lane 1."""
+    rng = np.random.default_rng(5)
+    pts = np.vstack([[0.2, 44.0], np.column_stack([rng.uniform(0.2, 2.0, 11), rng.uniform(44.3, 47.5, 11)])])
+    seen = _run([(pts, -15.0, 2, 0, 0.0)], frames=60)
+    xs = [st.x for ss in seen.values() for st in ss]
+    assert xs and all(abs(x - 1.1) < 0.4 for x in xs), xs
