@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -19,6 +20,7 @@ LOST_AFTER_S = 2.0  # a vehicle not seen for this long (and never finished) is f
 # 0.3 s are practically never seen on real roads.
 MIN_HEADWAY_S = 0.3
 MAX_TRAJECTORY_POINTS = 2000
+MAX_EDIE_SEGMENTS = 3000  # per vehicle (2 minutes at 25 frames/s): what can be taken back
 CARRY_SPEED_STATES = 25  # a vehicle finalised inside its region drives on at the median speed of its last states
 CARRY_MIN_SPEED = 1.0  # m/s; slower ones are not carried on
 
@@ -59,7 +61,8 @@ class _Track:
     counted_lane: int | None = None  # lane of its first count-line crossing
     counted: set = field(default_factory=set)  # lanes whose count line it crossed (staggered lines)
     trajectory: list[tuple[float, float, float]] = field(default_factory=list)
-    segs: list[tuple] = field(default_factory=list)  # its Edie segments (lane, w0, w1, y0, y1)
+    # its latest Edie segments (lane, w0, w1, y0, y1), to take back
+    segs: deque = field(default_factory=lambda: deque(maxlen=MAX_EDIE_SEGMENTS))
     family: int | None = None  # id of the vehicle it was found a duplicate of (see _check_crossing)
 
 
@@ -250,7 +253,14 @@ class TrafficMeasures:
         if tr.family is not None:
             return
         tr.family = fam
-        since = other.first_wall if other is not None else tr.prev[0] + offset
+        self._take_back(tr, other.first_wall if other is not None else tr.prev[0] + offset)
+        covered = [tr.prev[0] + offset] + ([other.prev[0] + offset] if other is not None else [])
+        self.family_until[fam] = max(self.family_until.get(fam, -np.inf), min(covered))
+        if other is not None and other.family is None:
+            other.family = fam
+
+    def _take_back(self, tr: _Track, since: float) -> None:
+        """Remove a vehicle's Edie segments after wall time ``since`` (within the period in progress)."""
         if self.clock.current is not None:
             since = max(since, self.clock.current)
         back = [sg for sg in tr.segs if sg[2] > since]
@@ -259,10 +269,6 @@ class TrafficMeasures:
             f = np.clip((since - w0) / np.maximum(w1 - w0, 1e-9), 0.0, 1.0)
             self.edie.add(lanes.astype(np.int64), w0 + f * (w1 - w0), w1, y0 + f * (y1 - y0), y1, sign=-1.0)
         tr.segs.clear()
-        covered = [tr.prev[0] + offset] + ([other.prev[0] + offset] if other is not None else [])
-        self.family_until[fam] = max(self.family_until.get(fam, -np.inf), min(covered))
-        if other is not None and other.family is None:
-            other.family = fam
 
     def _edie_segment(self, tr: _Track, seg: tuple) -> tuple | None:
         """A vehicle's Edie segment as counted: a duplicate's only for the time its family has not covered."""

@@ -383,3 +383,4 @@ def test_a_vehicle_finalised_inside_the_region_drives_on_to_its_end():
     dist, time = tm.edie.peek(EPOCH)[:, 1]
     assert dist == pytest.approx(60.0, abs=0.1)
     assert time == pytest.approx(3.0, abs=0.01)
+
