@@ -21,6 +21,7 @@ LOST_AFTER_S = 2.0  # a vehicle not seen for this long (and never finished) is f
 MIN_HEADWAY_S = 0.3
 MAX_TRAJECTORY_POINTS = 2000
 MAX_EDIE_SEGMENTS = 3000  # per vehicle (2 minutes at 25 frames/s): what can be taken back
+ENDED_KEEP_S = LOST_AFTER_S  # an ended vehicle is kept this long for a fragment crossing its count line after it
 CARRY_SPEED_STATES = 25  # a vehicle finalised inside its region drives on at the median speed of its last states
 CARRY_MIN_SPEED = 1.0  # m/s; slower ones are not carried on
 
@@ -62,8 +63,30 @@ class _Track:
     counted: set = field(default_factory=set)  # lanes whose count line it crossed (staggered lines)
     trajectory: list[tuple[float, float, float]] = field(default_factory=list)
     # its latest Edie segments (lane, w0, w1, y0, y1), to take back
-    segs: deque = field(default_factory=lambda: deque(maxlen=MAX_EDIE_SEGMENTS))
-    family: int | None = None  # id of the vehicle it was found a duplicate of (see _check_crossing)
+    segs: deque[tuple] = field(default_factory=lambda: deque(maxlen=MAX_EDIE_SEGMENTS))
+    covered_until: float = -np.inf  # wall time its Edie segments reach
+    family: int | None = None  # its family's id (the counted vehicle's) when it is one of several groups on it
+    ended_wall: float | None = None
+
+
+@dataclass
+class _Family:
+    """Groups found on one vehicle (see TrafficMeasures._duplicate): Edie counts their time once."""
+
+    start: float  # the earliest first wall time of its members
+    until: float  # wall time its segments cover up to
+
+
+def _cut(seg: tuple, a: float, b: float) -> tuple | None:
+    """The part of an Edie segment (lane, w0, w1, y0, y1) between wall times a and b, or None."""
+    lane, w0, w1, y0, y1 = seg
+    a, b = max(a, w0), min(b, w1)
+    if b <= a:
+        return None
+    if a == w0 and b == w1:
+        return seg
+    f0, f1 = (a - w0) / (w1 - w0), (b - w0) / (w1 - w0)
+    return lane, a, b, y0 + f0 * (y1 - y0), y0 + f1 * (y1 - y0)
 
 
 def _states_of(v: VehicleState) -> list[VehicleState]:
@@ -106,7 +129,8 @@ class TrafficMeasures:
         self.crossings: dict[int, list[Crossing]] = {lane: [] for lane in self.lanes.ids}
         self.last_crossing: dict[int, float] = {}  # lane -> capture time of its last crossing
         self.last_crossing_id: dict[int, int] = {}  # lane -> the vehicle that crossed then
-        self.family_until: dict[int, float] = {}  # duplicate family id -> wall time its Edie covers up to
+        self.families: dict[int, _Family] = {}  # by the id of the counted vehicle
+        self.ended: dict[int, _Track] = {}  # vehicles ended in the last ENDED_KEEP_S
         self.merged_crossings = 0  # crossings taken as fragments of the vehicle just before
         self.partial_periods: set[float] = set()
         self.keep_trajectories = bool(site.store.trajectories)
@@ -137,30 +161,33 @@ class TrafficMeasures:
         seen = set()
         todo: list[tuple[VehicleState, list[VehicleState]]] = []
         known = set(self.tracks)
-        for v in vehicles:
+        # the biggest groups first: of several crossing a count line in one frame, that one is the vehicle
+        for v in sorted(vehicles, key=lambda v: -v.n_features):
             todo.append((v, _states_of(v) if v.id not in known else [v]))
             known.add(v.id)
         flat = [s for _, ss in todo for s in ss]
         raws = self.lanes.lanes_at(np.array([s.x for s in flat]), np.array([s.y_front for s in flat]))
+        segs: list[tuple | None] = []
         k = 0
         for v, ss in todo:
             seen.add(v.id)
+            tr = None
             for s in ss:
                 raw = int(raws[k]) or None
                 k += 1
                 seg = self._advance(s, raw, offset, out)
-                if seg is not None:
-                    seg = self._edie_segment(self.tracks[v.id], seg)
-                if seg is not None:
-                    seg_lane.append(seg[0]); seg_w0.append(seg[1]); seg_w1.append(seg[2])
-                    seg_y0.append(seg[3]); seg_y1.append(seg[4])
-            if v.finished:
-                self._finish(v, offset, out)
-        self.edie.add(np.array(seg_lane, dtype=np.int64), np.array(seg_w0), np.array(seg_w1),
-                      np.array(seg_y0), np.array(seg_y1))
+                tr = self.tracks[v.id]
+                segs.append(None if seg is None else self._edie_segment(tr, seg))
+            if v.finished and tr is not None:
+                seg = self._finish(v, offset, out)
+                segs.append(None if seg is None else self._edie_segment(tr, seg))
+        segs = [sg for sg in segs if sg is not None]
+        if segs:
+            lanes, w0, w1, y0, y1 = (np.array(c) for c in zip(*segs))
+            self.edie.add(lanes.astype(np.int64), w0, w1, y0, y1)
         for vid in [vid for vid, tr in self.tracks.items() if vid not in seen and t - tr.prev[0] > LOST_AFTER_S]:
             tr = self.tracks.pop(vid)
-            self._forget(tr)
+            self._ended(vid, tr, wall)
             for lp in self.loops:
                 ev = lp.drop(vid, tr.prev[0])
                 if ev is not None:
@@ -235,7 +262,7 @@ class TrafficMeasures:
         if last is not None and abs(tc - last) < MIN_HEADWAY_S:
             self.merged_crossings += 1
             if last_id is not None and last_id != v.id:
-                self._duplicate(v.id, tr, last_id, offset)
+                self._duplicate(v.id, tr, last_id)
             return
         if tr.counted_lane is None:
             tr.counted_lane = lane_c
@@ -243,83 +270,87 @@ class TrafficMeasures:
         self.crossings[lane_c].append(cr)
         out.crossings.append(cr)
 
-    def _duplicate(self, vid: int, tr: _Track, other_id: int, offset: float) -> None:
+    def _duplicate(self, vid: int, tr: _Track, other_id: int) -> None:
         """Vehicle ``vid`` is another group on vehicle ``other_id`` (their fronts crossed the count line
-        together): from the time both were tracked, Edie counts the pair's distance and time once. Its
-        segments since then are taken back (as far as the period in progress), and from now on a segment
-        of either counts only for the time not yet covered by the other."""
-        other = self.tracks.get(other_id)
-        fam = other.family if other is not None and other.family is not None else other_id
-        if tr.family is not None:
+        together, the other one counted): Edie counts their distance and time once. Its segments over the
+        time the other's family covered are taken back (as far as the period in progress), and from now on a
+        member's segment counts only for time its family has not covered."""
+        other = self.tracks.get(other_id) or self.ended.get(other_id)
+        if tr.family is not None or other is None:
             return
-        tr.family = fam
-        self._take_back(tr, other.first_wall if other is not None else tr.prev[0] + offset)
-        covered = [tr.prev[0] + offset] + ([other.prev[0] + offset] if other is not None else [])
-        self.family_until[fam] = max(self.family_until.get(fam, -np.inf), min(covered))
-        if other is not None and other.family is None:
-            other.family = fam
+        fam_id = other.family if other.family is not None else other_id
+        fam = self.families.get(fam_id)
+        if fam is None:
+            fam = self.families[fam_id] = _Family(other.first_wall, other.covered_until)
+            other.family = fam_id
+        tr.family = fam_id
+        self._take_back(tr, fam.start, fam.until)
+        fam.start = min(fam.start, tr.first_wall)
+        fam.until = max(fam.until, tr.covered_until)
 
-    def _take_back(self, tr: _Track, since: float) -> None:
-        """Remove a vehicle's Edie segments after wall time ``since`` (within the period in progress)."""
+    def _take_back(self, tr: _Track, since: float, until: float) -> None:
+        """Remove the parts of a vehicle's Edie segments between wall times ``since`` and ``until`` (within
+        the period in progress); it keeps no segments after this."""
         if self.clock.current is not None:
             since = max(since, self.clock.current)
-        back = [sg for sg in tr.segs if sg[2] > since]
+        back = [c for c in (_cut(sg, since, until) for sg in tr.segs) if c is not None]
         if back:
-            lanes, w0, w1, y0, y1 = (np.array(c, dtype=float) for c in zip(*back))
-            f = np.clip((since - w0) / np.maximum(w1 - w0, 1e-9), 0.0, 1.0)
-            self.edie.add(lanes.astype(np.int64), w0 + f * (w1 - w0), w1, y0 + f * (y1 - y0), y1, sign=-1.0)
+            lanes, w0, w1, y0, y1 = (np.array(c) for c in zip(*back))
+            self.edie.add(lanes.astype(np.int64), w0, w1, y0, y1, sign=-1.0)
         tr.segs.clear()
 
     def _edie_segment(self, tr: _Track, seg: tuple) -> tuple | None:
-        """A vehicle's Edie segment as counted: a duplicate's only for the time its family has not covered."""
+        """A vehicle's Edie segment as counted: a family member's only for the time its family has not
+        covered yet (members come in order of size: the biggest group's segment counts)."""
+        tr.covered_until = max(tr.covered_until, seg[2])
         if tr.family is None:
             tr.segs.append(seg)
             return seg
-        lane, w0, w1, y0, y1 = seg
-        until = self.family_until.get(tr.family, -np.inf)
-        self.family_until[tr.family] = max(until, w1)
-        if w1 <= until:
-            return None
-        if w0 < until:
-            f = (until - w0) / (w1 - w0)
-            return lane, until, w1, y0 + f * (y1 - y0), y1
+        fam = self.families[tr.family]
+        seg = _cut(seg, fam.until, np.inf)
+        fam.until = max(fam.until, tr.covered_until)
         return seg
 
-    def _carry_on(self, v: VehicleState, tr: _Track, offset: float) -> None:
+    def _carry_on(self, v: VehicleState, tr: _Track, offset: float) -> tuple | None:
         """A vehicle finalised at an exit zone that begins before the end of its lane's Edie region (far
-        away, where vehicles are small) drives on to that end: its remaining distance and time are added at
-        its recent speed, as the pipeline's backfill adds the stretch before a vehicle was first seen. One
-        lost on the way is not: it may be found again as a new vehicle."""
+        away, where vehicles are small) drives on to that end: its Edie segment over the rest, at its
+        recent speed, as the pipeline's backfill adds the stretch before a vehicle was first seen. One
+        lost on the way is not carried on: it may be found again as a new vehicle."""
         if not v.exited:
-            return
+            return None
         lane = tr.lane_raw if tr.lane_raw is not None else tr.history.lane
         if lane is None:
-            return
+            return None
         sign = self.lanes.sign[lane]
         speed = float(np.median(tr.speeds[-CARRY_SPEED_STATES:]))
         if v.vy * sign <= 0 or speed < CARRY_MIN_SPEED:
-            return
+            return None
         ylo, yhi = self.region[lane]
         end = yhi if sign > 0 else ylo
         gap = (end - v.y_front) * sign
         if gap <= 0 or not ylo <= v.y_front <= yhi:
-            return
+            return None
         w0 = v.t + offset
-        seg = self._edie_segment(tr, (lane, w0, w0 + gap / speed, v.y_front, end))
-        if seg is not None:
-            self.edie.add(np.array([seg[0]], dtype=np.int64), *(np.array([c]) for c in seg[1:]))
+        return lane, w0, w0 + gap / speed, v.y_front, end
 
-    def _forget(self, tr: _Track) -> None:
-        """Drop a family's bookkeeping once its last track has ended."""
-        if tr.family is not None and not any(o.family == tr.family for o in self.tracks.values()):
-            self.family_until.pop(tr.family, None)
+    def _ended(self, vid: int, tr: _Track, wall: float) -> None:
+        """Keep an ended vehicle a while (a group on it may cross its count line just after); forget the
+        ones kept longer, and the families none of whose members is left."""
+        tr.ended_wall = wall
+        self.ended[vid] = tr
+        old = [k for k, o in self.ended.items() if wall - o.ended_wall > ENDED_KEEP_S]
+        for k in old:
+            fam = self.ended.pop(k).family
+            if fam is not None and not any(o.family == fam for o in (*self.tracks.values(), *self.ended.values())):
+                self.families.pop(fam, None)
 
-    def _finish(self, v: VehicleState, offset: float, out: MeasureUpdate) -> None:
+    def _finish(self, v: VehicleState, offset: float, out: MeasureUpdate) -> tuple | None:
+        """Record a finished vehicle; returns its carry-on Edie segment (see _carry_on) or None."""
         tr = self.tracks.pop(v.id, None)
         if tr is None:
-            return
-        self._carry_on(v, tr, offset)
-        self._forget(tr)
+            return None
+        carry = self._carry_on(v, tr, offset)
+        self._ended(v.id, tr, v.t + offset)
         for lp in self.loops:
             ev = lp.drop(v.id, v.t)
             if ev is not None:
@@ -333,6 +364,7 @@ class TrafficMeasures:
             speed_kmh=speed, length_m=length, length_class=length_class(length, self.site.measures) or "",
             lane_changes=tr.history.changes, trajectory=tr.trajectory if self.keep_trajectories else None,
         ))
+        return carry
 
     # ------------------------------------------------------------------ periods
 

@@ -76,7 +76,7 @@ class VehicleRecord:
     length_m: float
     length_class: str
     lane_changes: int = 0
-    trajectory: list[tuple[float, float, float]] | None = None  # (t, x, y) of the representative point
+    trajectory: list[tuple[float, float, float]] | None = None  # (t, x, y_front) as reported
 
     def to_dict(self) -> dict:
         return asdict(self)

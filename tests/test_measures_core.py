@@ -384,3 +384,55 @@ def test_a_vehicle_finalised_inside_the_region_drives_on_to_its_end():
     assert dist == pytest.approx(60.0, abs=0.1)
     assert time == pytest.approx(3.0, abs=0.01)
 
+
+
+def test_a_group_on_a_counted_vehicle_never_takes_its_lane():
+    """The second group on a vehicle (fewer features) comes first in the tracker's list, crosses the count
+    line in the same frame, and then drifts over the lane line: the vehicle is counted by its own group,
+    and its distance and time stay in its lane (1), none goes to lane 3."""
+    lanes = [{"id": 1, "direction": "approaching", "polygon_m": [[-5, 0], [0, 0], [0, 100], [-5, 100]],
+              "region_y_m": [20.0, 80.0], "count_y_m": 50.0},
+             {"id": 3, "direction": "approaching", "polygon_m": [[0, 0], [5, 0], [5, 100], [0, 100]],
+              "region_y_m": [20.0, 80.0], "count_y_m": 50.0}]
+    site = make_site(loops=[], lanes=lanes)
+    tm = TrafficMeasures(site)
+    crossings = []
+    for i in range(126):
+        t = i / 25
+        y = 100.0 - 20.0 * t
+        frag_x = -0.3 if t < 2.6 else 0.3
+        crossings += tm.step(t, EPOCH + t, [VehicleState(2, t, frag_x, y + 0.3, y + 1.3, 0, -20, 1.0, 4),
+                                            VehicleState(1, t, -2.5, y, y + 4.5, 0, -20, 4.5, 8)]).crossings
+    assert [c.vehicle_id for c in crossings] == [1] and tm.merged_crossings == 1
+    sums = tm.edie.peek(EPOCH)
+    assert sums[:, 0] == pytest.approx([60.0, 3.0], abs=0.05)
+    assert sums[:, 1] == pytest.approx([0.0, 0.0], abs=1e-9)
+
+
+def test_a_group_crossing_just_after_its_vehicle_ended_adds_nothing():
+    """The counted vehicle is finalised at the exit zone the moment it crosses (and driven on to the
+    region's end); a second group on it crossing 0.015 s later adds nothing: d(A) = 60 m, t(A) = 3 s."""
+    site = make_site(loops=[])
+    tm = TrafficMeasures(site)
+    for i in range(126):
+        t = i / 25
+        y = 100.0 - 20.0 * t
+        vs = []
+        if y >= 49.6 - 1e-9:
+            vs.append(VehicleState(1, t, -2.5, y, y + 4.5, 0, -20, 4.5, 8, finished=y < 50, exited=y < 50))
+        vs.append(VehicleState(2, t, -2.4, y + 0.3, y + 1.3, 0, -20, 1.0, 4))
+        tm.step(t, EPOCH + t, vs)
+    assert tm.merged_crossings == 1
+    # the second group, 0.3 m behind, reaches the region's end 0.015 s after the vehicle's carry-on does
+    assert tm.edie.peek(EPOCH)[:, 0] == pytest.approx([60.3, 3.015], abs=0.01)
+
+
+def test_taking_back_a_segment_across_a_period_boundary_leaves_nothing():
+    from appliance.edie import EdieAccumulator
+
+    acc = EdieAccumulator([1], {1: (0.0, 100.0)}, 60.0)
+    args = (np.array([1]), np.array([50.0]), np.array([70.0]), np.array([10.0]), np.array([90.0]))
+    acc.add(*args)
+    assert acc.peek(0.0)[:, 0] == pytest.approx([40.0, 10.0]) and acc.peek(60.0)[:, 0] == pytest.approx([40.0, 10.0])
+    acc.add(*args, sign=-1.0)
+    assert np.all(acc.peek(0.0) == 0) and np.all(acc.peek(60.0) == 0)

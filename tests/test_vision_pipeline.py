@@ -185,7 +185,7 @@ def test_receding_lane_and_static_markings():
     sc.add_vehicle(-1.75, 8.0, 4.5, 18.0)  # receding: front is the far end, enters at the bottom
     sc.add_vehicle(-1.75, -4.0 - 18.0 * 0.8, 4.5, 18.0)  # enters the view 0.8 s later
     finished, seen = run(pipe, sc, 5.0)
-    # both vehicles, once each, with the representative point on the vehicle (1.8 m wide at x = -1.75)
+    # both vehicles, once each, placed across the road on the vehicle (1.8 m wide at x = -1.75)
     assert len(finished) == 2 and all(-2.8 < f.x < -0.7 for f in finished), [(f.x, f.y_front) for f in finished]
     exit_from = pipe.zones.lanes[0].exit_y[0]
     assert exit_from > 40.0  # the receding lane's exit zone is at the far end

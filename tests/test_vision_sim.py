@@ -2,7 +2,7 @@
 the hand-counted real clip.
 
 A vehicle counts in a lane when its reported near-end trajectory crosses the lane's count_y_m with its
-representative point inside the lane; truth counts the simulator's vehicle fronts crossing the same line.
+place across the road (x) inside the lane; truth counts the simulator's vehicle fronts crossing the same line.
 """
 
 from __future__ import annotations
