@@ -166,6 +166,17 @@ def motion_class(s: np.ndarray, age: np.ndarray) -> np.ndarray:
     return m
 
 
+def _moving_body(members: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """A moving group's features without those standing still (below STANDING_MPS while its median is above
+    MOVING_MPS): road texture just uncovered beside a vehicle, linked before its speed showed, is not on it
+    and must not be its near end."""
+    v = np.abs(s[members, 3])
+    if _median(v) <= MOVING_MPS:
+        return members
+    keep = v >= STANDING_MPS
+    return members[keep] if keep.any() else members
+
+
 def _extent(o: VehicleState, length: float | None = None) -> tuple[float, float]:
     """Along-road span a vehicle surely covers: its features' span (or its own length without joined
     fragments), at least MIN_LENGTH_M behind its front, plus a metre of slack each way."""
@@ -327,8 +338,9 @@ class Grouper:
                     tr.trajectory.append((t, float(s[members[0], 0]), float(s[members[0], 1])))
                     tr.start_y = tr.trajectory[0][2]
                 continue
-            rep = members[np.argmax(px[members, 1])]  # nearest the camera: lowest in the image
-            ys = s[members, 1]
+            body = _moving_body(members, s)
+            rep = body[np.argmax(px[body, 1])]  # nearest the camera: lowest in the image
+            ys = s[body, 1]
             lz = self.zones.by_index(tr.lane_index) if tr.lane_index > 0 else None
             sign = lz.sign if lz is not None else -1
             length = float(ys.max() - ys.min())
@@ -336,7 +348,7 @@ class Grouper:
             # The representative point is the near end: the front of an approaching vehicle, the rear of a
             # receding one. When the lowest feature is lost the next one is further back: the near end then
             # carries on from where it was at the vehicle's speed (a new lower feature moves it forwards).
-            near_v = members[(np.abs(ys - s[rep, 1]) < NEAR_REP_M) & (age[members] >= 3)]
+            near_v = body[(np.abs(ys - s[rep, 1]) < NEAR_REP_M) & (age[body] >= 3)]
             vy_near = _median(s[near_v, 3]) if len(near_v) else float(s[rep, 3])
             if tr.trajectory:
                 t0, _, prev = tr.trajectory[-1]
@@ -348,7 +360,7 @@ class Grouper:
                     rep_y = max(prev, min(max(rep_y, ahead), rep_y + MAX_LEAD_M))
             else:
                 tr.start_y = rep_y
-            g = self._ground_length(tr, sign, members, ys, s[rep, 1], vy_near, age, s[:, 3], length)
+            g = self._ground_length(tr, sign, body, ys, s[rep, 1], vy_near, age, s[:, 3], length)
             if sign < 0:
                 front, rear = rep_y, rep_y + length
                 tr.ground = (g, rep_y + g)
@@ -361,7 +373,7 @@ class Grouper:
             # of the vehicle; higher features move faster in the road projection)
             vx = _median(s[near_v, 2]) if len(near_v) else float(s[rep, 2])
             vy = vy_near
-            low = members[np.abs(ys - s[rep, 1]) < NEAR_REP_M]  # the low part: the footprint across the road
+            low = body[np.abs(ys - s[rep, 1]) < NEAR_REP_M]  # the low part: the footprint across the road
             tr.x_lo, tr.x_hi = float(s[low, 0].min()), float(s[low, 0].max())
             x = _median(s[low, 0])  # its place across the road (a lowest corner may lie at its side)
             st = VehicleState(

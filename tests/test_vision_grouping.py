@@ -219,3 +219,17 @@ def test_a_vehicles_place_across_the_road_is_its_footprints_middle_not_its_lowes
     seen = _run([(pts, -15.0, 2, 0, 0.0)], frames=60)
     xs = [st.x for ss in seen.values() for st in ss]
     assert xs and all(abs(x - 1.1) < 0.4 for x in xs), xs
+
+
+def test_road_texture_uncovered_behind_a_receding_vehicle_is_not_its_near_end():
+    """Corners on the road just uncovered behind a receding car (0.3 m behind its rear, a new one every
+    third frame) are linked to it before their speed shows. They are not its near end: once its own
+    features have settled its reported speed stays 15 m/s (within 10 %) in every report."""
+    lanes = (("receding", -3.5, 0.0), ("approaching", 0.0, 3.5))
+    car = (_box(-2.6, -0.9, 10.0, 14.0, 12, 7), 15.0, 1, 0, 0.0)
+    texture = [(np.array([[-1.75 + 0.1 * (f % 5), 10.0 + 15.0 * f * DT - 0.3]]), 0.0, 1, f, 0.0)
+               for f in range(12, 33, 3)]
+    seen = _run([car, *texture], frames=50, lanes=lanes)
+    assert len(seen) == 1, {k: len(v) for k, v in seen.items()}
+    settled = [st for ss in seen.values() for st in ss if st.t >= 0.5]
+    assert settled and all(abs(st.vy - 15.0) < 1.5 for st in settled), [round(st.vy, 1) for st in settled]
