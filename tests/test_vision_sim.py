@@ -139,9 +139,11 @@ SLOW_PRESETS = ["free-flow", "dense", "trucks-and-buses", "long-shadows", "night
 # long-shadows +53 % in its third lane (the shadow test needs the road background, learnt in the first 8 s
 # of this short scene) and defects +57 % in lane 1 (15 fps content splits vehicles; 11 of 7 since a
 # vehicle's x is its low features' middle: a group straddling the lane line in the clip's last second now
-# falls in lane 1; `roadwatch replay` counts 10, merging a fragment). These bounds hold the current
+# falls in lane 1; `roadwatch replay` counts 10, merging a fragment); two-directions +42 % in lane 3 (17 of
+# 12: the shadows of lane 4's receding cars; since standing features are kept out of a group's near end it
+# is one more here, and 5-14 fewer over 320 s, seeds 11 and 12). These bounds hold the current
 # level, so a regression or a broken stage (which gives 0 or 2x counts) fails.
-LANE_TOL = {"long-shadows": 0.6, "defects": 0.6}
+LANE_TOL = {"long-shadows": 0.6, "defects": 0.6, "two-directions": 0.45}
 # Speeds at the count line, each reported crossing matched to a truth crossing of its lane within 0.5 s:
 # measured median errors 2.2-3.0 % (night 4.8 %), matched 74-99 % of reported crossings (the rest are the
 # extra counts above). A wrong clock or scale, or a near end that lags, is off by 10 % or more.
