@@ -55,6 +55,7 @@ class EdieAccumulator:
         self.yhi = np.array([regions[lane][1] for lane in self.lane_ids])
         self.period_s = float(period_s)
         self.sums: dict[float, np.ndarray] = {}  # period start -> (2, n_lanes): distance, time
+        self.closed_until = -np.inf  # end of the last period taken: what lies before it is dropped
 
     def _bucket(self, p: float) -> np.ndarray:
         if p not in self.sums:
@@ -69,6 +70,13 @@ class EdieAccumulator:
             return
         li = np.array([self.index[int(x)] for x in lanes])
         ta, tb, dist = clip_segments(w0, w1, y0, y1, self.ylo[li], self.yhi[li])
+        # a backfilled or carried-on part in a period already reported is not added (it would make a
+        # bucket nobody takes); a segment straddling the close keeps its part after it
+        late = ta < self.closed_until
+        if np.any(late):
+            cut = np.clip((self.closed_until - ta) / np.maximum(tb - ta, 1e-12), 0.0, 1.0)
+            dist = np.where(late, dist * (1.0 - cut), dist)
+            ta = np.where(late, np.minimum(self.closed_until, tb), ta)
         keep = tb > ta
         if not np.any(keep):
             return
@@ -94,6 +102,7 @@ class EdieAccumulator:
 
     def take(self, p: float) -> np.ndarray:
         """Remove and return the (2, n_lanes) sums of period ``p`` (zeros when nothing was seen)."""
+        self.closed_until = max(self.closed_until, p + self.period_s)
         return self.sums.pop(p, np.zeros((2, len(self.lane_ids))))
 
     def peek(self, p: float) -> np.ndarray:

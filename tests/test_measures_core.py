@@ -436,3 +436,16 @@ def test_taking_back_a_segment_across_a_period_boundary_leaves_nothing():
     assert acc.peek(0.0)[:, 0] == pytest.approx([40.0, 10.0]) and acc.peek(60.0)[:, 0] == pytest.approx([40.0, 10.0])
     acc.add(*args, sign=-1.0)
     assert np.all(acc.peek(0.0) == 0) and np.all(acc.peek(60.0) == 0)
+
+
+def test_a_segment_in_a_period_already_taken_is_not_added():
+    """A backfilled part dated before the last period taken is dropped (it would make a bucket nobody
+    takes); a segment straddling the close keeps only its part after it."""
+    from appliance.edie import EdieAccumulator
+
+    acc = EdieAccumulator([1], {1: (0.0, 100.0)}, 60.0)
+    assert acc.take(0.0)[:, 0] == pytest.approx([0.0, 0.0])
+    acc.add(np.array([1, 1]), np.array([40.0, 50.0]), np.array([50.0, 70.0]), np.array([0.0, 10.0]),
+            np.array([10.0, 90.0]))
+    assert set(acc.sums) == {60.0}
+    assert acc.peek(60.0)[:, 0] == pytest.approx([40.0, 10.0])
