@@ -171,17 +171,17 @@ class TrafficMeasures:
         k = 0
         for v, ss in todo:
             seen.add(v.id)
-            tr = None
             for s in ss:
                 raw = int(raws[k]) or None
                 k += 1
                 seg = self._advance(s, raw, offset, out)
-                tr = self.tracks[v.id]
-                segs.append(None if seg is None else self._edie_segment(tr, seg))
-            if v.finished and tr is not None:
-                seg = self._finish(v, offset, out)
-                segs.append(None if seg is None else self._edie_segment(tr, seg))
-        segs = [sg for sg in segs if sg is not None]
+                if seg is not None:
+                    segs.append(self._edie_segment(self.tracks[v.id], seg))
+            tr = self.tracks[v.id]
+            seg = self._finish(v, offset, out) if v.finished else None
+            if seg is not None:
+                segs.append(self._edie_segment(tr, seg))
+        segs = [sg for sg in segs if sg is not None]  # a family member's segment may be covered already
         if segs:
             lanes, w0, w1, y0, y1 = (np.array(c) for c in zip(*segs))
             self.edie.add(lanes.astype(np.int64), w0, w1, y0, y1)
@@ -289,10 +289,8 @@ class TrafficMeasures:
         fam.until = max(fam.until, tr.covered_until)
 
     def _take_back(self, tr: _Track, since: float, until: float) -> None:
-        """Remove the parts of a vehicle's Edie segments between wall times ``since`` and ``until`` (within
-        the period in progress); it keeps no segments after this."""
-        if self.clock.current is not None:
-            since = max(since, self.clock.current)
+        """Remove the parts of a vehicle's Edie segments between wall times ``since`` and ``until`` (the
+        accumulator leaves periods already taken alone); it keeps no segments after this."""
         back = [c for c in (_cut(sg, since, until) for sg in tr.segs) if c is not None]
         if back:
             lanes, w0, w1, y0, y1 = (np.array(c) for c in zip(*back))
