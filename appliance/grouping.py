@@ -431,6 +431,8 @@ class Grouper:
                 # the earlier near-end points, so that lines crossed before this report still count
                 ahead = 0.0 if sign < 0 else tr.ground[0]
                 st.trajectory = [(pt, px_, py + ahead) for pt, px_, py in tr.trajectory[:-1]] or None
+                lz = self.zones.by_index(tr.lane_index) if tr.lane_index > 0 else None
+                st.entered = lz is not None and lz.detection_y[0] <= tr.trajectory[0][2] <= lz.detection_y[1]
             out.append(st)
         for vid in self._passed_through(t):
             self.tracks.pop(vid)

@@ -97,7 +97,8 @@ def _states_of(v: VehicleState) -> list[VehicleState]:
     out = []
     for p in traj:
         t, x, yf = float(p[0]), float(p[1]), float(p[2])
-        out.append(VehicleState(v.id, t, x, yf, yf - (v.y_front - v.y_rear), v.vx, v.vy, v.length, v.n_features))
+        out.append(VehicleState(v.id, t, x, yf, yf - (v.y_front - v.y_rear), v.vx, v.vy, v.length, v.n_features,
+                                entered=v.entered and not out))
     if out[-1].t < v.t:
         out.append(v)
     return out
@@ -229,6 +230,8 @@ class TrafficMeasures:
         tr.prev = (v.t, v.x, v.y_front, v.y_rear, speed)
         tr.lane_raw = raw
         if prev is None:
+            if v.entered and raw is not None:
+                self._check_straddle(v, raw, offset, tr, out)
             return None
         seg_lane = raw if raw is not None else lane
         if seg_lane is not None and seg_lane not in tr.counted:
@@ -251,6 +254,17 @@ class TrafficMeasures:
         tc = prev[0] + s * (v.t - prev[0])
         speed = (prev[4] + s * (abs(v.vy) - prev[4])) * 3.6
         x = prev[1] + s * (v.x - prev[1])
+        self._count(v, tr, lane, tc, speed, x, offset, out)
+
+    def _check_straddle(self, v: VehicleState, lane: int, offset: float, tr: _Track, out: MeasureUpdate) -> None:
+        """A vehicle entering already over its count line (front past it, rear short of it) counts now."""
+        c = self.count_y[lane]
+        if (v.y_front - c) * self.lanes.sign[lane] >= 0 > (v.y_rear - c) * self.lanes.sign[lane]:
+            self._count(v, tr, lane, v.t, abs(v.vy) * 3.6, v.x, offset, out)
+
+    def _count(self, v: VehicleState, tr: _Track, lane: int, tc: float, speed: float, x: float, offset: float,
+               out: MeasureUpdate) -> None:
+        c = self.count_y[lane]
         lane_c = int(self.lanes.lanes_at(np.array([x]), np.array([c]))[0]) or lane
         if lane_c in tr.counted:
             return

@@ -197,6 +197,7 @@ class VisionPipeline:
                 first = held[0]
                 pts = list(first.trajectory or []) + [(h.t, h.x, h.y_front) for h in held[:-1]]
                 v.trajectory = pts
+                v.entered = first.entered
                 self._backfill(v, held)
                 out.append(v)
         for vid in [vid for vid in self.held if vid not in seen]:
@@ -210,6 +211,7 @@ class VisionPipeline:
             if abs(last.y_front - held[0].y_front) < HOLD_MIN_TRAVEL_M:
                 continue
             last.trajectory = list(held[0].trajectory or []) + [(h.t, h.x, h.y_front) for h in held[:-1]]
+            last.entered = held[0].entered
             out.append(last)
         return out
 

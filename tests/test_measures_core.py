@@ -289,6 +289,20 @@ def test_vehicle_reported_late_or_once_counts_from_its_trajectory():
     assert tm2.step(2.0, EPOCH + 2.0, [v2]).crossings == []
 
 
+@pytest.mark.parametrize("entered", [True, False])
+def test_a_vehicle_entering_already_over_its_count_line_counts_once(entered):
+    """Lane 2 recedes, count line at 40 m: first seen with its rear at 30 m (just in view) and its front at
+    45 m. Entering (first seen in its detection zone) it counts at first sight, once; a vehicle found again
+    there after being lost was counted before and must not count again."""
+    tm = TrafficMeasures(make_site())
+    got = []
+    for i in range(30):
+        t = i * 0.04
+        v = VehicleState(9, t, 2.5, 45.0 + 20 * t, 30.0 + 20 * t, 0.0, 20.0, 15.0, 8, entered=entered and i == 0)
+        got += tm.step(t, EPOCH + t, [v]).crossings
+    assert [(c.lane, c.t) for c in got] == ([(2, 0.0)] if entered else [])
+
+
 def test_restart_after_an_outage_marks_periods_partial():
     site = make_site(period_s=60)
     traffic = dict(speed=20.0, headway=3.0, length=4.5, lane=1)
