@@ -15,10 +15,15 @@ from appliance.periods import PERIOD_TOLERANCE_S, PeriodClock
 from appliance.types import ChannelState, LaneAggregate, LoopEvent, VehicleRecord, VehicleState
 
 LOST_AFTER_S = 2.0  # a vehicle not seen for this long (and never finished) is forgotten
-# Two fronts crossing one lane's count line closer than this are one vehicle (a fragment of it):
-# front-to-front, even a car (4.5 m + 2 m gap) at 100 km/h needs 0.23 s, and headways under
-# 0.3 s are practically never seen on real roads.
+# Two fronts crossing one lane's count line closer in time than a car can follow another are one vehicle
+# (a fragment of it, e.g. its roof seen as a group of its own in low light): front to front a car needs
+# its length and a standstill gap (MIN_SPACING_M) plus MIN_TIME_GAP_S at its speed. Within 0.3-0.6 s:
+# 0.47 s at 67 km/h, 0.38 s at 100 km/h; at crawling speeds 0.6 s is still less than any real follower
+# needs (at 5 m/s it would have to run 1.5 m into the car ahead).
+MIN_SPACING_M = 5.0
+MIN_TIME_GAP_S = 0.2
 MIN_HEADWAY_S = 0.3
+MAX_HEADWAY_S = 0.6
 MAX_TRAJECTORY_POINTS = 2000
 MAX_EDIE_SEGMENTS = 3000  # per vehicle (2 minutes at 25 frames/s): what can be taken back
 ENDED_KEEP_S = LOST_AFTER_S  # an ended vehicle is kept this long for a fragment crossing its count line after it
@@ -77,6 +82,11 @@ class _Family:
     until: float  # wall time its segments cover up to
 
 
+def min_headway(speed_mps: float) -> float:
+    """The shortest front-to-front time in which a vehicle can follow another at this speed."""
+    return min(max(MIN_SPACING_M / max(speed_mps, 1e-3) + MIN_TIME_GAP_S, MIN_HEADWAY_S), MAX_HEADWAY_S)
+
+
 def _cut(seg: tuple, a: float, b: float) -> tuple | None:
     """The part of an Edie segment (lane, w0, w1, y0, y1) between wall times a and b, or None."""
     lane, w0, w1, y0, y1 = seg
@@ -130,6 +140,7 @@ class TrafficMeasures:
         self.crossings: dict[int, list[Crossing]] = {lane: [] for lane in self.lanes.ids}
         self.last_crossing: dict[int, float] = {}  # lane -> capture time of its last crossing
         self.last_crossing_id: dict[int, int] = {}  # lane -> the vehicle that crossed then
+        self.last_crossing_speed: dict[int, float] = {}  # lane -> its speed then (m/s)
         self.families: dict[int, _Family] = {}  # by the id of the counted vehicle
         self.ended: dict[int, _Track] = {}  # vehicles ended in the last ENDED_KEEP_S
         self.merged_crossings = 0  # crossings taken as fragments of the vehicle just before
@@ -271,9 +282,11 @@ class TrafficMeasures:
         tr.counted.add(lane_c)
         last = self.last_crossing.get(lane_c)
         last_id = self.last_crossing_id.get(lane_c)
+        last_speed = self.last_crossing_speed.get(lane_c, speed / 3.6)
         if last is None or tc >= last:
             self.last_crossing[lane_c], self.last_crossing_id[lane_c] = tc, v.id
-        if last is not None and abs(tc - last) < MIN_HEADWAY_S:
+            self.last_crossing_speed[lane_c] = speed / 3.6
+        if last is not None and abs(tc - last) < min_headway(min(speed / 3.6, last_speed)):
             self.merged_crossings += 1
             if last_id is not None and last_id != v.id:
                 self._duplicate(v.id, tr, last_id)

@@ -343,6 +343,25 @@ def test_fragment_crossing_right_behind_a_vehicle_is_not_counted():
     assert tm.merged_crossings == 1
 
 
+@pytest.mark.parametrize("speed, lag, one", [(18.6, 0.37, True), (18.6, 0.55, False), (30.0, 0.37, False),
+                                             (3.0, 0.55, True), (3.0, 0.9, False)])
+def test_a_second_front_closer_than_a_car_can_follow_is_the_same_vehicle(speed, lag, one):
+    """Front to front a follower needs a car's length, a standstill gap and a short time gap at its speed:
+    a second group crossing sooner is a part of the first (a roof in low light, 0.37 s behind at 67 km/h);
+    at 108 km/h a real follower may be 0.37 s behind, and 0.9 s behind is a real one at any speed."""
+    tm = TrafficMeasures(make_site())
+    counted = []
+    for i in range(100):
+        t = i * 0.04
+        vs = []
+        for vid, t0 in ((1, 0.0), (2, lag)):
+            y = 52.0 - speed * (t - t0)
+            if y < 60.0:
+                vs.append(VehicleState(vid, t, -2.5, y, y + 4.5, 0, -speed, 4.5, 8))
+        counted += tm.step(t, EPOCH + t, vs).crossings
+    assert [c.vehicle_id for c in counted] == ([1] if one else [1, 2])
+
+
 def test_overlapping_presences_make_one_actuation():
     """A fragment of a vehicle on the loop at the same time adds no count, as on a real loop."""
     site = make_site()
