@@ -47,6 +47,10 @@ FRAGMENT_X_MARGIN_NO_CAMERA_M = 2.0  # ... for elevated parts when the camera po
 MIN_LENGTH_M = 4.5  # the footprint reaches at least this far behind the vehicle's front (shortest car)
 GHOST = -1  # host id meaning "a vehicle finalised in the last GHOST_S seconds" (its leftovers)
 GHOST_S = 2.0
+# a reported vehicle lost short of its exit (stopped in a queue, occluded) may be found again as a new group:
+# within this long and this far of where it was lost, a new group has not entered the view (see _entered)
+LOST_KEEP_S = 60.0
+REFOUND_M = 6.0
 RECHECK_S = 1.5  # a reported group is re-checked for being a fragment of another vehicle this long
 RECHECK_VOTES = 10  # ... and joins a vehicle only after matching it in this many consecutive frames
 RECHECK_DRIFT_M = 1.5  # ... at a steady place on it (this much drift: a separate vehicle overtaking)
@@ -258,6 +262,7 @@ class Grouper:
         self._place = 0.0
         self.merged_now: set[int] = set()  # groups joined to another vehicle in the last step (for the pipeline's hold)
         self.recent: list[tuple[VehicleState, float, float]] = []  # finished vehicles, for their leftovers
+        self.lost: list[tuple[float, int, float]] = []  # (t, lane index, near end) of reported vehicles lost
         cam = zones.camera  # (X, Y, height) of the camera, or None
         # only a plausible pole or overpass camera is used to undo the height magnification
         self.foot = cam if cam is not None and 3.0 <= cam[2] <= 60.0 else None
@@ -323,6 +328,8 @@ class Grouper:
                 tr = self.tracks.pop(vid)
                 if self._qualifies_on_loss(tr):
                     out.append(self._finish(tr, exited=False))
+                elif tr.reported and tr.trajectory:  # lost where it may be found again as a new group
+                    self.lost.append((t, tr.lane_index, tr.trajectory[-1][2]))
         for vid, members in groups.items():
             lanes = lane[members]
             tr = self.tracks.get(vid)
@@ -431,8 +438,7 @@ class Grouper:
                 # the earlier near-end points, so that lines crossed before this report still count
                 ahead = 0.0 if sign < 0 else tr.ground[0]
                 st.trajectory = [(pt, px_, py + ahead) for pt, px_, py in tr.trajectory[:-1]] or None
-                lz = self.zones.by_index(tr.lane_index) if tr.lane_index > 0 else None
-                st.entered = lz is not None and lz.detection_y[0] <= tr.trajectory[0][2] <= lz.detection_y[1]
+                st.entered = self._entered(tr, st.t)
             out.append(st)
         for vid in self._passed_through(t):
             self.tracks.pop(vid)
@@ -587,6 +593,18 @@ class Grouper:
             if gap <= SHADOW_GAP_M and width <= SHADOW_MAX_WIDTH_M and shadow is not None and shadow(members, vid):
                 return vid
         return None
+
+    def _entered(self, tr: VehicleTrack, t: float) -> bool:
+        """Whether a newly reported vehicle entered the view: first seen in its lane's detection zone, and
+        not where a reported vehicle of its lane was lost in the last LOST_KEEP_S (found again, it must not
+        count again)."""
+        if tr.lane_index <= 0:
+            return False
+        lz = self.zones.by_index(tr.lane_index)
+        y0 = tr.trajectory[0][2]
+        self.lost = [lo for lo in self.lost if t - lo[0] <= LOST_KEEP_S]
+        near_lost = any(li == tr.lane_index and abs(y - y0) <= REFOUND_M for _, li, y in self.lost)
+        return lz.detection_y[0] <= y0 <= lz.detection_y[1] and not near_lost
 
     def _link(self, a: np.ndarray, b: np.ndarray) -> None:
         """Join features a to the vehicle of features b for good."""

@@ -138,9 +138,7 @@ class TrafficMeasures:
             self.occupancy_loop.setdefault(lp.cfg.lane, lp)
         self.tracks: dict[int, _Track] = {}
         self.crossings: dict[int, list[Crossing]] = {lane: [] for lane in self.lanes.ids}
-        self.last_crossing: dict[int, float] = {}  # lane -> capture time of its last crossing
-        self.last_crossing_id: dict[int, int] = {}  # lane -> the vehicle that crossed then
-        self.last_crossing_speed: dict[int, float] = {}  # lane -> its speed then (m/s)
+        self.last_counted: dict[int, tuple[float, int, float]] = {}  # lane -> (capture time, vehicle, m/s)
         self.families: dict[int, _Family] = {}  # by the id of the counted vehicle
         self.ended: dict[int, _Track] = {}  # vehicles ended in the last ENDED_KEEP_S
         self.merged_crossings = 0  # crossings taken as fragments of the vehicle just before
@@ -273,27 +271,27 @@ class TrafficMeasures:
         if (v.y_front - c) * self.lanes.sign[lane] >= 0 > (v.y_rear - c) * self.lanes.sign[lane]:
             self._count(v, tr, lane, v.t, abs(v.vy) * 3.6, v.x, offset, out)
 
-    def _count(self, v: VehicleState, tr: _Track, lane: int, tc: float, speed: float, x: float, offset: float,
+    def _count(self, v: VehicleState, tr: _Track, lane: int, tc: float, speed_kmh: float, x: float, offset: float,
                out: MeasureUpdate) -> None:
+        """Vehicle v's front crossed the count line at capture time tc: a count, unless it is a part of the
+        vehicle counted just before (then one family, see _duplicate)."""
         c = self.count_y[lane]
         lane_c = int(self.lanes.lanes_at(np.array([x]), np.array([c]))[0]) or lane
         if lane_c in tr.counted:
             return
         tr.counted.add(lane_c)
-        last = self.last_crossing.get(lane_c)
-        last_id = self.last_crossing_id.get(lane_c)
-        last_speed = self.last_crossing_speed.get(lane_c, speed / 3.6)
-        if last is None or tc >= last:
-            self.last_crossing[lane_c], self.last_crossing_id[lane_c] = tc, v.id
-            self.last_crossing_speed[lane_c] = speed / 3.6
-        if last is not None and abs(tc - last) < min_headway(min(speed / 3.6, last_speed)):
+        speed_mps = speed_kmh / 3.6
+        last = self.last_counted.get(lane_c)  # (time, vehicle, speed): a merged part never moves it on
+        if last is not None and abs(tc - last[0]) < min_headway(min(speed_mps, last[2])):
             self.merged_crossings += 1
-            if last_id is not None and last_id != v.id:
-                self._duplicate(v.id, tr, last_id)
+            if last[1] != v.id:
+                self._duplicate(v.id, tr, last[1])
             return
+        if last is None or tc >= last[0]:
+            self.last_counted[lane_c] = (tc, v.id, speed_mps)
         if tr.counted_lane is None:
             tr.counted_lane = lane_c
-        cr = Crossing(v.id, lane_c, tc, tc + offset, speed, v.length, self.count_y[lane_c])
+        cr = Crossing(v.id, lane_c, tc, tc + offset, speed_kmh, v.length, self.count_y[lane_c])
         self.crossings[lane_c].append(cr)
         out.crossings.append(cr)
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -70,7 +71,7 @@ def test_matching_rule(counts_file):
     assert len(tight.matches) == 0
 
 
-def _replay_and_evaluate(video, site_file, counts_file, out) -> tuple[dict[int, list[int]], str]:
+def _replay_and_evaluate(video: Path, site_file: Path, counts_file: Path, out: Path) -> tuple[dict[int, list[int]], str]:
     """`roadwatch replay` then `roadwatch evaluate` as subprocesses: per-lane rows (hand, result, matched,
     missed, extra, diff) and the evaluation's text."""
     r = subprocess.run([sys.executable, "-m", "tools.cli", "replay", str(video), "--config", str(site_file),
@@ -103,11 +104,11 @@ def test_replay_and_evaluate_real_clip(site_file, counts_file, tmp_path):
     assert sum(rows[lane][4] for lane in hand) <= 8, text
 
 
-def _variant_clip(counts_file, out_dir, kind: str):
+def _variant_clip(counts_file: Path, out_dir: Path, kind: str) -> Path:
     """The real clip changed the way other sites' footage differs, with the same hand counts:
     ``reversed`` played backwards (receding traffic entering over the image's bottom edge; frames linked,
     crossing frames and directions mirrored), ``dark`` at 30 % brightness with sensor noise, ``drift`` the
-    camera panning 20 px right and 10 px down over the clip with 2 px of wind shake, ``repeat`` every other
+    picture shifting 20 px right and 10 px down over the clip with 2 px of wind shake, ``repeat`` every other
     frame a repeat (12.5 frames/s footage in a 25 frames/s stream)."""
     c = json.loads(counts_file.read_text())
     n = c["frames"]
@@ -144,10 +145,12 @@ def _variant_clip(counts_file, out_dir, kind: str):
                                   pytest.param("repeat", marks=pytest.mark.slow)])
 def test_real_clip_variants_count_within_one_per_lane(counts_file, tmp_path, kind):
     """The target on real clips (each lane within 1 of the hand count) on footage unlike the clip's own.
-    Reversed: the count line lies 12 m from the image's bottom edge, so every vehicle is found with its
-    rear still below the edge and its front over the line; it counts when first seen straddling it (7 of
-    17 in lane 1 before that rule). Dark: roofs seen as groups of their own crossed 0.37 s behind their
-    cars (lane 1 +2 before the speed-dependent shortest headway)."""
+    Reversed: receding traffic entering over the image's bottom edge. This clip's calibration fits no
+    pinhole camera, so lengths are not height-corrected (17-25 m) and a vehicle is first seen with its front
+    already over the line 12 m from the edge; it counts when first seen straddling it (7 of 17 in lane 1
+    before that rule). The hand frames, mirrored, are the rear's, so crossings are not matched in time here.
+    Dark: roofs seen as groups of their own crossed 0.37 s behind their cars (lane 1 +2 before the
+    speed-dependent shortest headway)."""
     clip = _variant_clip(counts_file, tmp_path, kind)
     site = tmp_path / "site.toml"
     r = CliRunner().invoke(site_from_counts, [str(clip), "--out", str(site)])

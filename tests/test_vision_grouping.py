@@ -233,3 +233,25 @@ def test_road_texture_uncovered_behind_a_receding_vehicle_is_not_its_near_end():
     assert len(seen) == 1, {k: len(v) for k, v in seen.items()}
     settled = [st for ss in seen.values() for st in ss if st.t >= 0.5]
     assert settled and all(abs(st.vy - 15.0) < 1.5 for st in settled), [round(st.vy, 1) for st in settled]
+
+
+def test_a_vehicle_found_again_where_one_was_lost_has_not_entered_the_view():
+    """The `entered` flag of a first report (the measures count a vehicle entering already over its count
+    line): first seen in its lane's detection zone, but not within REFOUND_M of where a reported vehicle of
+    its lane was lost in the last LOST_KEEP_S (found again, it was counted before)."""
+    from appliance.grouping import LOST_KEEP_S, REFOUND_M, VehicleTrack
+
+    site = parse_site(site_dict())
+    zones = SiteZones(site)
+    g = Grouper(site.tracking, zones)
+    lz = zones.by_index(1)
+    y_in = 0.5 * (lz.detection_y[0] + lz.detection_y[1])
+    tr = VehicleTrack(id=5, first_t=10.0, lane_index=1, trajectory=[(10.0, 0.0, y_in)])
+    assert g._entered(tr, 10.0)
+    g.lost.append((9.0, 1, y_in + 0.5 * REFOUND_M))
+    assert not g._entered(tr, 10.0)
+    assert g._entered(tr, 9.0 + LOST_KEEP_S + 1.0)  # long gone
+    g.lost.append((9.0, 2, y_in))  # another lane's
+    assert g._entered(tr, 10.0)
+    outside = VehicleTrack(id=6, first_t=10.0, lane_index=1, trajectory=[(10.0, 0.0, lz.exit_y[0])])
+    assert not g._entered(outside, 10.0)
