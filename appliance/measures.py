@@ -108,7 +108,7 @@ def _states_of(v: VehicleState) -> list[VehicleState]:
     for p in traj:
         t, x, yf = float(p[0]), float(p[1]), float(p[2])
         out.append(VehicleState(v.id, t, x, yf, yf - (v.y_front - v.y_rear), v.vx, v.vy, v.length, v.n_features,
-                                entered=v.entered and not out))
+                                entered=v.entered))
     if out[-1].t < v.t:
         out.append(v)
     return out
@@ -253,11 +253,7 @@ class TrafficMeasures:
                         out: MeasureUpdate) -> None:
         c = self.count_y[lane]
         y0, y1 = prev[2], v.y_front
-        if self.lanes.sign[lane] < 0:
-            crossed = y0 > c >= y1
-        else:
-            crossed = y0 < c <= y1
-        if not crossed:
+        if self._past_line(lane, y0) or not self._past_line(lane, y1):
             return
         s = (c - y0) / (y1 - y0)
         tc = prev[0] + s * (v.t - prev[0])
@@ -267,9 +263,12 @@ class TrafficMeasures:
 
     def _check_straddle(self, v: VehicleState, lane: int, offset: float, tr: _Track, out: MeasureUpdate) -> None:
         """A vehicle entering already over its count line (front past it, rear short of it) counts now."""
-        c = self.count_y[lane]
-        if (v.y_front - c) * self.lanes.sign[lane] >= 0 > (v.y_rear - c) * self.lanes.sign[lane]:
+        if self._past_line(lane, v.y_front) and not self._past_line(lane, v.y_rear):
             self._count(v, tr, lane, v.t, abs(v.vy) * 3.6, v.x, offset, out)
+
+    def _past_line(self, lane: int, y: float) -> bool:
+        """Whether along-road position y is on or past the lane's count line in its direction of travel."""
+        return (y - self.count_y[lane]) * self.lanes.sign[lane] >= 0
 
     def _count(self, v: VehicleState, tr: _Track, lane: int, tc: float, speed_kmh: float, x: float, offset: float,
                out: MeasureUpdate) -> None:

@@ -194,11 +194,7 @@ class VisionPipeline:
             moved = abs(v.y_front - held[0].y_front) >= HOLD_MIN_TRAVEL_M
             if v.finished or (v.t - held[0].t >= HOLD_S and moved):
                 del self.held[v.id]
-                first = held[0]
-                pts = list(first.trajectory or []) + [(h.t, h.x, h.y_front) for h in held[:-1]]
-                v.trajectory = pts
-                v.entered = first.entered
-                self._backfill(v, held)
+                self._backfill(_released(held), held)
                 out.append(v)
         for vid in [vid for vid in self.held if vid not in seen]:
             # gone (merged into another vehicle, or lost) while held: if it moved, its points go out as
@@ -207,12 +203,9 @@ class VisionPipeline:
             held = self.held.pop(vid)
             if vid in self.grouper.merged_now:
                 continue  # a part of another vehicle: never a vehicle of its own
-            last = held[-1]
-            if abs(last.y_front - held[0].y_front) < HOLD_MIN_TRAVEL_M:
+            if abs(held[-1].y_front - held[0].y_front) < HOLD_MIN_TRAVEL_M:
                 continue
-            last.trajectory = list(held[0].trajectory or []) + [(h.t, h.x, h.y_front) for h in held[:-1]]
-            last.entered = held[0].entered
-            out.append(last)
+            out.append(_released(held))
         return out
 
     def _group_speed(self, vid: int) -> float:
@@ -370,3 +363,12 @@ def _colour(vid: int) -> tuple[int, int, int]:
     hsv = np.uint8([[[h, 220, 255]]])
     b, g, r = cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR)[0, 0]
     return int(b), int(g), int(r)
+
+
+def _released(held: list[VehicleState]) -> VehicleState:
+    """The last of a new vehicle's held states, as its first report: its trajectory runs through the earlier
+    held points, and it keeps the first report's `entered`."""
+    last = held[-1]
+    last.trajectory = list(held[0].trajectory or []) + [(h.t, h.x, h.y_front) for h in held[:-1]]
+    last.entered = held[0].entered
+    return last

@@ -435,7 +435,6 @@ def test_a_vehicle_finalised_inside_the_region_drives_on_to_its_end():
     assert time == pytest.approx(3.0, abs=0.01)
 
 
-
 def test_a_group_on_a_counted_vehicle_never_takes_its_lane():
     """The second group on a vehicle (fewer features) comes first in the tracker's list, crosses the count
     line in the same frame, and then drifts over the lane line: the vehicle is counted by its own group,

@@ -69,9 +69,10 @@ def test_plain_replay_writes_loop_events(scene, tmp_path, suffix):
 def test_tracked_loop_actuations_match_the_truth_in_dense_traffic(tmp_path):
     """The vision pipeline's loop actuations against the truth's in dense traffic: no second actuation for
     a vehicle whose group comes apart over a loop, no vehicle lost. Measured here: -3.8 % over the four
-    loops (151 of 157; worst loop -4 of 36, one of them a car counted in the next lane). The loops' dropout bridging is tested in test_measures_core: since the grouping keeps standing
-    and moving features apart, few groups come apart over these loops and this scene gives +1.3 % without
-    bridging (it gave +5.7 % before). The 320 s sweep of the same preset, seed 11: -5 % .. +3 % per loop."""
+    loops (151 of 157; worst loop -4 of 36, one of them a car counted in the next lane). The loops' dropout
+    bridging is tested in test_measures_core: since the grouping keeps standing and moving features apart,
+    few groups come apart over these loops and this scene gives +1.3 % without bridging (it gave +5.7 %
+    before). The 320 s sweep of the same preset, seed 11: -5 % .. +3 % per loop."""
     repo = Path(__file__).resolve().parent.parent
     d = tmp_path / "dense"
     roadwatch("simulate", "--preset", "dense", "--seed", "2", "--seconds", "90", "--out", str(d), "-q", cwd=repo)
