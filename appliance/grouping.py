@@ -129,6 +129,47 @@ def pair_update(live, s, lane, motion, state, rng, y0, conn_x, conn_y, seg_x, se
 
 
 @njit(cache=True)
+def unbridge(new, live, owner, s, state):
+    """A feature born this frame links to at most one reported vehicle (owner[slot] its id, or -1): two
+    vehicles following closely (a queue) would otherwise be joined for good by one feature between them.
+    It keeps the links to the vehicle it lies nearest to; two new features kept by different vehicles
+    are not linked either. Parts of one vehicle reported apart join it as fragments instead, which needs
+    the camera's position (heights): without it the grouper does not call this."""
+    kept = np.full(new.shape[0], -1)
+    for a in range(new.shape[0]):
+        i = new[a]
+        best = -1
+        best_d = np.inf
+        several = False
+        for j in live:
+            if j == i or owner[j] < 0:
+                continue
+            st = state[i, j] if i < j else state[j, i]
+            if st != LINKED:
+                continue
+            several = several or (best >= 0 and owner[j] != best)
+            d = abs(s[j, 1] - s[i, 1]) + abs(s[j, 0] - s[i, 0])
+            if d < best_d:
+                best = owner[j]
+                best_d = d
+        kept[a] = best
+        if several:
+            for j in live:
+                if j != i and owner[j] >= 0 and owner[j] != best:
+                    if i < j:
+                        if state[i, j] == LINKED:
+                            state[i, j] = APART
+                    elif state[j, i] == LINKED:
+                        state[j, i] = APART
+    for a in range(new.shape[0]):
+        for b in range(a + 1, new.shape[0]):
+            if kept[a] >= 0 and kept[b] >= 0 and kept[a] != kept[b]:
+                i, j = min(new[a], new[b]), max(new[a], new[b])
+                if state[i, j] == LINKED:
+                    state[i, j] = APART
+
+
+@njit(cache=True)
 def components(live, state, labels):
     """Connected components of the LINKED graph over live slots; labels[slot] = smallest member slot."""
     n = live.shape[0]
@@ -275,6 +316,11 @@ class Grouper:
         self.state[:, slots] = UNSEEN
         self.fvid[slots] = -1
 
+    def _owners(self) -> np.ndarray:
+        """Per feature slot, the id of the reported vehicle it belongs to, or -1."""
+        ids = [vid for vid, tr in self.tracks.items() if tr.reported and tr.n_now >= self.p.min_features]
+        return np.where(np.isin(self.fvid, ids), self.fvid, -1)
+
     def _assign_ids(self, live: np.ndarray) -> dict[int, np.ndarray]:
         labels = self.labels[live]
         order = np.argsort(labels, kind="stable")
@@ -318,6 +364,9 @@ class Grouper:
         if len(live):
             pair_update(live, s, lane, motion_class(s, age), self.state, self.rng, self.y0, p.connection_lateral_m,
                         p.connection_m, p.segmentation_lateral_m, p.segmentation_m, p.segmentation_per_m)
+            new = live[age[live] == 0]
+            if len(new) and self.foot is not None:  # parts of one vehicle then join it as fragments
+                unbridge(new, live, self._owners(), s, self.state)
             components(live, self.state, self.labels)
             groups = self._assign_ids(live)
         # shadow(group slots, host id): the image test for a group lying only on the host's shadow

@@ -255,3 +255,15 @@ def test_a_vehicle_found_again_where_one_was_lost_has_not_entered_the_view():
     assert g._entered(tr, 10.0)
     outside = VehicleTrack(id=6, first_t=10.0, lane_index=1, trajectory=[(10.0, 0.0, lz.exit_y[0])])
     assert not g._entered(outside, 10.0)
+
+
+def test_one_new_feature_between_two_queued_vehicles_does_not_join_them():
+    """In a queue two cars follow 2.5 m apart at the same crawl, each already a reported vehicle. A corner
+    found between them (the leader's rear edge, the follower's bonnet) lies within the connection
+    distance of both: linking it to both would join the two vehicles for good, one count for two. It
+    links to one of them only."""
+    leader = (_box(-1.0, 1.0, 40.0, 41.5, 6, 12), -5.0, 2, 0, 0.0)
+    follower = (_box(-1.0, 1.0, 47.5, 51.5, 6, 13), -5.0, 2, 0, 0.0)
+    bridge = (np.array([[0.0, 44.5]]), -5.0, 2, 20, 0.0)  # found when both have been reported
+    seen = _run([leader, follower, bridge], frames=110)
+    assert _counted(seen) == 2, {vid: (ss[0].t, ss[0].y_front, ss[-1].n_features) for vid, ss in seen.items()}
