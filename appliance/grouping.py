@@ -269,20 +269,22 @@ class VehicleTrack:
     trajectory: list[tuple[float, float, float]] = field(default_factory=list)
 
     def mean_vy(self, fallback: float) -> float:
-        """Along-road speed of the near end over the last SPEED_WINDOW_S (steadier than one frame's)."""
+        """Along-road speed of the near end over the last SPEED_WINDOW_S (steadier than one frame's), or the
+        features' speed (fallback) if that is faster: a near end lags its features while it is held at the
+        image's edge (a receding vehicle entering at the bottom) or while its lowest feature changes."""
         tr = self.trajectory
         if len(tr) < 3:
             return fallback
         t1, _, y1 = tr[-1]
         if self._mean_vy[0] == (t1, len(tr)):
             v = self._mean_vy[1]
-            return fallback if v is None else v
-        for t0, _, y0 in reversed(tr):
-            if t1 - t0 >= SPEED_WINDOW_S:
-                break
-        v = (y1 - y0) / (t1 - t0) if t1 - t0 >= 0.2 else None
-        self._mean_vy = ((t1, len(tr)), v)
-        return fallback if v is None else v
+        else:
+            for t0, _, y0 in reversed(tr):
+                if t1 - t0 >= SPEED_WINDOW_S:
+                    break
+            v = (y1 - y0) / (t1 - t0) if t1 - t0 >= 0.2 else None
+            self._mean_vy = ((t1, len(tr)), v)
+        return fallback if v is None or abs(fallback) > abs(v) else v
 
 
 class Grouper:
@@ -560,8 +562,7 @@ class Grouper:
         # features' own speed is the better one
         vy = st.vy
         if tr.reported:
-            mv = tr.mean_vy(st.vy)
-            vy = mv if abs(mv) >= abs(st.vy) else st.vy
+            vy = tr.mean_vy(st.vy)
         self.recent = [r for r in self.recent if st.t - r[0].t <= GHOST_S]
         for o, x_lo, x_hi in [] if tr.reported else self.recent:
             if o.vy * vy <= 0 or not 0.85 <= vy / o.vy <= 2.5:

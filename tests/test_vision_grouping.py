@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from appliance.config import parse_site
-from appliance.grouping import Grouper
+from appliance.grouping import Grouper, VehicleTrack
 from appliance.zones import SiteZones
 from tests.test_vision_pipeline import site_dict
 
@@ -239,7 +239,7 @@ def test_a_vehicle_found_again_where_one_was_lost_has_not_entered_the_view():
     """The `entered` flag of a first report (the measures count a vehicle entering already over its count
     line): first seen in its lane's detection zone, but not within REFOUND_M of where a reported vehicle of
     its lane was lost in the last LOST_KEEP_S (found again, it was counted before)."""
-    from appliance.grouping import LOST_KEEP_S, REFOUND_M, VehicleTrack
+    from appliance.grouping import LOST_KEEP_S, REFOUND_M
 
     site = parse_site(site_dict())
     zones = SiteZones(site)
@@ -267,3 +267,16 @@ def test_one_new_feature_between_two_queued_vehicles_does_not_join_them():
     bridge = (np.array([[0.0, 44.5]]), -5.0, 2, 20, 0.0)  # found when both have been reported
     seen = _run([leader, follower, bridge], frames=110)
     assert _counted(seen) == 2, {vid: (ss[0].t, ss[0].y_front, ss[-1].n_features) for vid, ss in seen.items()}
+
+
+def test_a_near_end_held_at_the_image_edge_does_not_slow_the_vehicle():
+    """A receding vehicle entering at the image's bottom edge: its lowest visible point stays at the edge
+    until its rear is in view, while its features move at its speed. Judging a part of it by the speed of
+    that held point read the vehicle at a third of its speed (its shadow's groups then never matched it).
+    The vehicle's speed is the faster of the two."""
+    tr = VehicleTrack(id=1, first_t=0.0, lane_index=1)
+    tr.trajectory = [(0.04 * i, 4.0, 20.0) for i in range(8)] + [(0.32 + 0.04 * i, 4.0, 20.0 + 1.0 * i)
+                                                                     for i in range(1, 5)]
+    assert tr.mean_vy(25.0) == pytest.approx(25.0)
+    tr.trajectory = [(0.04 * i, 4.0, 20.0 + 1.0 * i) for i in range(13)]  # moving with its features
+    assert tr.mean_vy(24.0) == pytest.approx(25.0)
