@@ -130,11 +130,11 @@ def pair_update(live, s, lane, motion, state, rng, y0, conn_x, conn_y, seg_x, se
 
 @njit(cache=True)
 def unbridge(new, live, owner, s, state):
-    """A feature born this frame links to at most one reported vehicle (owner[slot] its id, or -1): two
-    vehicles following closely (a queue) would otherwise be joined for good by one feature between them.
-    It keeps the links to the vehicle it lies nearest to; two new features kept by different vehicles
-    are not linked either. Parts of one vehicle reported apart join it as fragments instead, which needs
-    the camera's position (heights): without it the grouper does not call this."""
+    """New features (age 0) link to at most one reported vehicle (owner[slot] its id, or -1): two vehicles
+    following closely (a queue) would otherwise be joined for good by one feature between them. Each keeps
+    its links to the vehicle it lies nearest to; returns that vehicle per new feature (or -1). Parts of one
+    vehicle reported apart join it as fragments instead, which needs the camera's position (heights):
+    without it the grouper does not call this."""
     kept = np.full(new.shape[0], -1)
     for a in range(new.shape[0]):
         i = new[a]
@@ -154,19 +154,30 @@ def unbridge(new, live, owner, s, state):
                 best_d = d
         kept[a] = best
         if several:
-            for j in live:
-                if j != i and owner[j] >= 0 and owner[j] != best:
-                    if i < j:
-                        if state[i, j] == LINKED:
-                            state[i, j] = APART
-                    elif state[j, i] == LINKED:
-                        state[j, i] = APART
+            _isolate(i, best, live, owner, state, True)
+    return kept
+
+
+@njit(cache=True)
+def _isolate(i, keep, live, owner, state, owned_only):
+    """Unlink feature i from every live feature not of vehicle keep (only from other vehicles' if
+    owned_only)."""
+    for j in live:
+        if j == i or (keep >= 0 and owner[j] == keep) or (owned_only and owner[j] < 0):
+            continue
+        if i < j:
+            if state[i, j] == LINKED:
+                state[i, j] = APART
+        elif state[j, i] == LINKED:
+            state[j, i] = APART
+
+
+@njit(cache=True)
+def isolate(new, kept, live, owner, state):
+    """New features that still join two vehicles through one another (or through a group of no vehicle)
+    keep only their links to their own vehicle."""
     for a in range(new.shape[0]):
-        for b in range(a + 1, new.shape[0]):
-            if kept[a] >= 0 and kept[b] >= 0 and kept[a] != kept[b]:
-                i, j = min(new[a], new[b]), max(new[a], new[b])
-                if state[i, j] == LINKED:
-                    state[i, j] = APART
+        _isolate(new[a], kept[a], live, owner, state, False)
 
 
 @njit(cache=True)
@@ -265,25 +276,26 @@ class VehicleTrack:
     ground: tuple[float, float] | None = None  # reported length and far end on the road
     still_y: float = float("nan")  # where the near end has stood (within STILL_M) ...
     still_t: float = 0.0  # ... since when
-    _mean_vy: tuple = ((None, 0), None)  # mean_vy's last answer, for the trajectory it was computed on
+    # the near end's speed over SPEED_WINDOW_S (or None), for the trajectory's (last t, length) it was taken on
+    _near_vy: tuple[tuple[float | None, int], float | None] = ((None, 0), None)
     trajectory: list[tuple[float, float, float]] = field(default_factory=list)
 
-    def mean_vy(self, fallback: float) -> float:
-        """Along-road speed of the near end over the last SPEED_WINDOW_S (steadier than one frame's), or the
-        features' speed (fallback) if that is faster: a near end lags its features while it is held at the
-        image's edge (a receding vehicle entering at the bottom) or while its lowest feature changes."""
+    def steady_vy(self, fallback: float) -> float:
+        """The along-road speed of the near end over the last SPEED_WINDOW_S (steadier than one frame's), or
+        the features' speed (fallback) if that is faster: a near end lags its features while it is held at
+        the image's edge (a receding vehicle entering at the bottom) or while its lowest feature changes."""
         tr = self.trajectory
         if len(tr) < 3:
             return fallback
         t1, _, y1 = tr[-1]
-        if self._mean_vy[0] == (t1, len(tr)):
-            v = self._mean_vy[1]
+        if self._near_vy[0] == (t1, len(tr)):
+            v = self._near_vy[1]
         else:
             for t0, _, y0 in reversed(tr):
                 if t1 - t0 >= SPEED_WINDOW_S:
                     break
             v = (y1 - y0) / (t1 - t0) if t1 - t0 >= 0.2 else None
-            self._mean_vy = ((t1, len(tr)), v)
+            self._near_vy = ((t1, len(tr)), v)
         return fallback if v is None or abs(fallback) > abs(v) else v
 
 
@@ -318,10 +330,23 @@ class Grouper:
         self.state[:, slots] = UNSEEN
         self.fvid[slots] = -1
 
-    def _owners(self) -> np.ndarray:
-        """Per feature slot, the id of the reported vehicle it belongs to, or -1."""
+    def _unbridge(self, live: np.ndarray, s: np.ndarray, age: np.ndarray) -> None:
+        """Components of the pair graph in which no feature found this frame (age 0: born, or never matched
+        since) joins two reported vehicles (see unbridge)."""
         ids = [vid for vid, tr in self.tracks.items() if tr.reported and tr.n_now >= self.p.min_features]
-        return np.where(np.isin(self.fvid, ids), self.fvid, -1)
+        owner = np.where(np.isin(self.fvid, ids), self.fvid, -1)
+        new = live[age[live] == 0]
+        kept = unbridge(new, live, owner, s, self.state) if len(new) else None
+        components(live, self.state, self.labels)
+        if kept is None:
+            return
+        own = owner[live] >= 0
+        pairs = np.unique(np.stack([self.labels[live][own], owner[live][own]]), axis=1)
+        labels, n = np.unique(pairs[0], return_counts=True)
+        joint = np.isin(self.labels[new], labels[n > 1])
+        if joint.any():
+            isolate(new[joint], kept[joint], live, owner, self.state)
+            components(live, self.state, self.labels)
 
     def _assign_ids(self, live: np.ndarray) -> dict[int, np.ndarray]:
         labels = self.labels[live]
@@ -366,10 +391,10 @@ class Grouper:
         if len(live):
             pair_update(live, s, lane, motion_class(s, age), self.state, self.rng, self.y0, p.connection_lateral_m,
                         p.connection_m, p.segmentation_lateral_m, p.segmentation_m, p.segmentation_per_m)
-            new = live[age[live] == 0]
-            if len(new) and self.foot is not None:  # parts of one vehicle then join it as fragments
-                unbridge(new, live, self._owners(), s, self.state)
-            components(live, self.state, self.labels)
+            if self.foot is not None:  # parts of one vehicle reported apart then join it as fragments
+                self._unbridge(live, s, age)
+            else:
+                components(live, self.state, self.labels)
             groups = self._assign_ids(live)
         # shadow(group slots, host id): the image test for a group lying only on the host's shadow
         shadow = None if is_shadow is None else (
@@ -557,12 +582,10 @@ class Grouper:
         footprint. Tall vehicles' tops seen in the next lane, or behind them, are such fragments. Sets
         self._place (where on the host the group lies) for the caller's steadiness votes."""
         y = tr.trajectory[-1][2]
-        # a reported group's speed over a while (steadier); a new one has only its features' speeds. A few-
-        # feature group's near end may have stood still a while (its lowest feature changing): then its
-        # features' own speed is the better one
+        # a reported group's speed over a while (steadier); a new one has only its features' speeds
         vy = st.vy
         if tr.reported:
-            vy = tr.mean_vy(st.vy)
+            vy = tr.steady_vy(st.vy)
         self.recent = [r for r in self.recent if st.t - r[0].t <= GHOST_S]
         for o, x_lo, x_hi in [] if tr.reported else self.recent:
             if o.vy * vy <= 0 or not 0.85 <= vy / o.vy <= 2.5:
@@ -587,7 +610,7 @@ class Grouper:
                 continue  # a new group is a part of a larger one, not the other way round
             if tr.reported and (not other.reported or other.report_t > tr.report_t):
                 continue  # a reported vehicle only joins one reported before it
-            ov = other.mean_vy(o.vy) if tr.reported else o.vy
+            ov = other.steady_vy(o.vy) if tr.reported else o.vy
             if ov * vy <= 0:
                 continue
             k = vy / ov
@@ -623,7 +646,7 @@ class Grouper:
                 continue
             if tr.reported and (not other.reported or other.report_t > tr.report_t):
                 continue
-            ov = other.mean_vy(o.vy) if tr.reported else o.vy
+            ov = other.steady_vy(o.vy) if tr.reported else o.vy
             if ov * vy <= 0:
                 continue
             self._place = y - other.trajectory[-1][2]

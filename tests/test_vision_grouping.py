@@ -257,26 +257,31 @@ def test_a_vehicle_found_again_where_one_was_lost_has_not_entered_the_view():
     assert not g._entered(outside, 10.0)
 
 
-def test_one_new_feature_between_two_queued_vehicles_does_not_join_them():
-    """In a queue two cars follow 2.5 m apart at the same crawl, each already a reported vehicle. A corner
-    found between them (the leader's rear edge, the follower's bonnet) lies within the connection
-    distance of both: linking it to both would join the two vehicles for good, one count for two. It
-    links to one of them only."""
+@pytest.mark.parametrize("gap_m, bridge_y", [(6.0, (44.5,)), (6.0, (43.0, 46.0)), (14.0, (44.0, 48.0, 52.0))],
+                         ids=["one corner", "two corners", "a chain"])
+def test_new_features_between_two_queued_vehicles_do_not_join_them(gap_m: float, bridge_y: tuple):
+    """In a queue two cars follow each other at the same crawl, each already a reported vehicle. Corners
+    found between them (the leader's rear edge, the follower's bonnet) lie within the connection distance
+    of one car or both, and of one another: linking them all would join the two vehicles for good, one
+    count for two. A new corner keeps the links to one vehicle at most, and new corners that would still
+    join two vehicles through one another keep only their own vehicle's."""
     leader = (_box(-1.0, 1.0, 40.0, 41.5, 6, 12), -5.0, 2, 0, 0.0)
-    follower = (_box(-1.0, 1.0, 47.5, 51.5, 6, 13), -5.0, 2, 0, 0.0)
-    bridge = (np.array([[0.0, 44.5]]), -5.0, 2, 20, 0.0)  # found when both have been reported
-    seen = _run([leader, follower, bridge], frames=110)
+    follower = (_box(-1.0, 1.0, 41.5 + gap_m, 45.5 + gap_m, 6, 13), -5.0, 2, 0, 0.0)
+    bridges = [(np.array([[0.0, y]]), -5.0, 2, 20, 0.0) for y in bridge_y]  # found when both were reported
+    seen = _run([leader, follower, *bridges], frames=150)
     assert _counted(seen) == 2, {vid: (ss[0].t, ss[0].y_front, ss[-1].n_features) for vid, ss in seen.items()}
 
 
 def test_a_near_end_held_at_the_image_edge_does_not_slow_the_vehicle():
     """A receding vehicle entering at the image's bottom edge: its lowest visible point stays at the edge
-    until its rear is in view, while its features move at its speed. Judging a part of it by the speed of
-    that held point read the vehicle at a third of its speed (its shadow's groups then never matched it).
-    The vehicle's speed is the faster of the two."""
-    tr = VehicleTrack(id=1, first_t=0.0, lane_index=1)
-    tr.trajectory = [(0.04 * i, 4.0, 20.0) for i in range(8)] + [(0.32 + 0.04 * i, 4.0, 20.0 + 1.0 * i)
-                                                                     for i in range(1, 5)]
-    assert tr.mean_vy(25.0) == pytest.approx(25.0)
-    tr.trajectory = [(0.04 * i, 4.0, 20.0 + 1.0 * i) for i in range(13)]  # moving with its features
-    assert tr.mean_vy(24.0) == pytest.approx(25.0)
+    until its rear is in view, while its features move at its speed. The speed of that held point is a
+    fraction of the vehicle's; the vehicle's speed over a while is the faster of the two."""
+    held = VehicleTrack(id=1, first_t=0.0, lane_index=1)
+    held.trajectory = [(0.04 * i, 4.0, 20.0 + max(0, i - 8) * 1.0) for i in range(13)]  # held for 0.32 s
+    assert held.steady_vy(25.0) == pytest.approx(25.0)
+    assert held.steady_vy(5.0) == pytest.approx(4.0 / 0.48)  # asked again (cached): the same rule
+    moving = VehicleTrack(id=2, first_t=0.0, lane_index=1)
+    moving.trajectory = [(0.04 * i, 4.0, 20.0 + 1.0 * i) for i in range(13)]  # moving with its features
+    assert moving.steady_vy(24.0) == pytest.approx(25.0)
+    moving.trajectory = moving.trajectory[:4]  # under 0.2 s: only the features' speed
+    assert moving.steady_vy(24.0) == pytest.approx(24.0)
