@@ -338,7 +338,7 @@ class Grouper:
         new = live[age[live] == 0]
         kept = unbridge(new, live, owner, s, self.state) if len(new) else None
         components(live, self.state, self.labels)
-        if kept is None:
+        if kept is None or len(np.unique(kept[kept >= 0])) < 2:  # two vehicles are joined through two of them
             return
         own = owner[live] >= 0
         pairs = np.unique(np.stack([self.labels[live][own], owner[live][own]]), axis=1)

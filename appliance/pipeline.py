@@ -82,7 +82,7 @@ class VisionPipeline:
     def warmup(self) -> None:
         """Compile (or load from cache) every numba kernel on dummy data, leaving no state behind."""
         from appliance.corners import select_spaced
-        from appliance.grouping import components, pair_update
+        from appliance.grouping import components, isolate, pair_update, unbridge
         from appliance.tracker import init_features, track_step
 
         p = self.p
@@ -106,6 +106,9 @@ class VisionPipeline:
         pair_update(live, s, np.ones(n, np.int32), np.zeros(n, np.int8), state, np.zeros((n, n, 4), np.float32),
                     np.zeros((n, n), np.float32), 2.5, 5.0, 1.0, 2.0, 0.1)
         components(live, state, np.zeros(n, np.int64))
+        owner = np.array([-1, 1, 2, -1], np.int64)
+        kept = unbridge(live[:1], live, owner, s, state)
+        isolate(live[:1], kept, live, owner, state)
 
     # ------------------------------------------------------------------------------------------
     def _check_frame(self, frame: Frame) -> np.ndarray:
