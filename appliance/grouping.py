@@ -330,9 +330,13 @@ class Grouper:
         self.state[:, slots] = UNSEEN
         self.fvid[slots] = -1
 
-    def _unbridge(self, live: np.ndarray, s: np.ndarray, age: np.ndarray) -> None:
-        """Components of the pair graph in which no feature found this frame (age 0: born, or never matched
-        since) joins two reported vehicles (see unbridge)."""
+    def _components(self, live: np.ndarray, s: np.ndarray, age: np.ndarray) -> None:
+        """Label the connected components of the pair graph (self.labels). With the camera known, no feature
+        found this frame (age 0: born, or never matched since) joins two reported vehicles (see unbridge):
+        parts of one vehicle reported apart then join it as fragments, by their height."""
+        if self.foot is None:
+            components(live, self.state, self.labels)
+            return
         ids = [vid for vid, tr in self.tracks.items() if tr.reported and tr.n_now >= self.p.min_features]
         owner = np.where(np.isin(self.fvid, ids), self.fvid, -1)
         new = live[age[live] == 0]
@@ -340,8 +344,9 @@ class Grouper:
         components(live, self.state, self.labels)
         if kept is None or len(np.unique(kept[kept >= 0])) < 2:  # two vehicles are joined through two of them
             return
-        own = owner[live] >= 0
-        pairs = np.unique(np.stack([self.labels[live][own], owner[live][own]]), axis=1)
+        owner_live = owner[live]
+        own = owner_live >= 0
+        pairs = np.unique(np.stack([self.labels[live][own], owner_live[own]]), axis=1)
         labels, n = np.unique(pairs[0], return_counts=True)
         joint = np.isin(self.labels[new], labels[n > 1])
         if joint.any():
@@ -391,10 +396,7 @@ class Grouper:
         if len(live):
             pair_update(live, s, lane, motion_class(s, age), self.state, self.rng, self.y0, p.connection_lateral_m,
                         p.connection_m, p.segmentation_lateral_m, p.segmentation_m, p.segmentation_per_m)
-            if self.foot is not None:  # parts of one vehicle reported apart then join it as fragments
-                self._unbridge(live, s, age)
-            else:
-                components(live, self.state, self.labels)
+            self._components(live, s, age)
             groups = self._assign_ids(live)
         # shadow(group slots, host id): the image test for a group lying only on the host's shadow
         shadow = None if is_shadow is None else (

@@ -197,8 +197,9 @@ class VisionPipeline:
             moved = abs(v.y_front - held[0].y_front) >= HOLD_MIN_TRAVEL_M
             if v.finished or (v.t - held[0].t >= HOLD_S and moved):
                 del self.held[v.id]
-                self._backfill(_released(held), held)
-                out.append(v)
+                first = _released(held)  # v itself, with the held points before it
+                self._backfill(first, held)
+                out.append(first)
         for vid in [vid for vid in self.held if vid not in seen]:
             # gone (merged into another vehicle, or lost) while held: if it moved, its points go out as
             # observed, without a backfill, so that a line it crossed meanwhile still counts; a group that

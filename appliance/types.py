@@ -43,7 +43,7 @@ class VehicleState:
     trajectory: list[tuple[float, float, float]] | None = None
     exited: bool = False  # finished at the exit zone (a vehicle lost after leaving the detection zone is
     # finished too, where it was last seen)
-    # set on a vehicle's first report (and kept on its later states) when it was first seen in its lane's
+    # set on a vehicle's first report (and the states backfilled from it) when it was first seen in its lane's
     # detection zone, not where a vehicle was lost: if it already straddles its count line (a receding
     # vehicle entering over the image's bottom edge, its front far ahead) it counts there
     entered: bool = False
