@@ -12,11 +12,22 @@ FAST_STEP = 4
 READY_UPDATES = 50  # ... and the test answers only after this many updates (8 s at 25 fps)
 NOISE = 10  # grey levels: a pixel this close to the background is the road as usual
 PAD_PX = 3
-MAX_BRIGHT_SHARE = 0.03  # a shadow brightens nothing
+MAX_BRIGHT_SHARE = 0.08  # a shadow brightens nothing (a little of its bright caster may be in the box)
 MIN_DARK_SHARE = 0.15
 SHADOW_RATIO = (0.2, 0.85)  # shadow over sunlit road: the share of light the sky still gives
-MIN_TEXTURE = 4.0  # grey-level std of the road under the shadow: below it the texture test cannot tell
-MIN_TEXTURE_NCC = 0.4  # the shadowed road still correlates with the road (a dark vehicle does not)
+# A shadow dims the road by one factor: most darkened pixels (its core; the rest are its penumbra and the
+# caster's edge) are within CORE_TOL of the median ratio; a vehicle's own pattern spreads the ratios.
+CORE_TOL = 0.1
+MIN_CORE_SHARE = 0.65
+MIN_TEXTURE = 6.0  # grey-level std of the road under the core: below it noise swamps the texture test ...
+FLAT_CORE_SHARE = 0.85  # ... and the road, too plain to tell, must be dimmed this evenly instead
+MIN_TEXTURE_NCC = 0.5  # the shadowed road still correlates with the road (a dark vehicle does not)
+CELL_PX = 6  # ... compared in cells of this size, those this dark (inside the shadow) ...
+CELL_DARK_SHARE = 0.9
+MIN_CELLS = 3  # ... when the box holds this many textured ones
+MIN_CELL_SHARE = 0.6  # ... of which this share must correlate
+INNER_KERNEL = np.ones((3, 3), np.uint8)  # else over the dark area without its edge pixels
+MIN_INNER_PX = 12
 MIN_ATTACHED_DARK = 0.6  # the image between a vehicle and its shadow is shadow too (a shadow touches its caster)
 
 
@@ -71,8 +82,9 @@ class Background:
         return (np.count_nonzero(a > b + NOISE) <= MAX_BRIGHT_SHARE * n
                 and np.count_nonzero(a < b - NOISE) >= MIN_ATTACHED_DARK * n)
 
-    def is_shadow(self, img: np.ndarray, pts: np.ndarray) -> bool:
-        """True when the box around image points pts (n x 2, x y) differs from the road only by a shadow."""
+    def is_shadow(self, img: np.ndarray, pts: np.ndarray, plain_ok: bool = True) -> bool:
+        """True when the box around image points pts (n x 2, x y) differs from the road only by a shadow.
+        Where the road is too plain for the texture test, an evenly dimmed box counts if plain_ok."""
         if not self.ready or len(pts) == 0:
             return False
         h, w = img.shape
@@ -89,12 +101,46 @@ class Background:
         dark = a < b - NOISE
         if np.count_nonzero(dark) < MIN_DARK_SHARE * n:
             return False
-        ad, bd = a[dark], b[dark]
-        ratio = float(np.median(ad / np.maximum(bd, 1.0)))
+        rr = a[dark] / np.maximum(b[dark], 1.0)
+        ratio = float(np.median(rr))
         if not SHADOW_RATIO[0] <= ratio <= SHADOW_RATIO[1]:
             return False
-        sb, sa = float(bd.std()), float(ad.std())
-        if sb < MIN_TEXTURE or sa < 1e-3:
+        if np.count_nonzero(np.abs(rr - ratio) <= CORE_TOL) < MIN_CORE_SHARE * len(rr):
             return False
-        ncc = float(np.mean((ad - ad.mean()) * (bd - bd.mean()))) / (sa * sb)
+        # The road's texture is compared cell by cell inside the dark area: a vehicle next to its own shadow
+        # would pass a test over the whole box (the shadow's part correlates), its body's cells do not.
+        nc, good = _cell_correlation(a, b, dark)
+        if nc >= MIN_CELLS:
+            return good >= MIN_CELL_SHARE * nc
+        # too small for cells: the whole dark area away from its edges (penumbra, the caster's outline)
+        inner = cv2.erode(dark.view(np.uint8), INNER_KERNEL).view(bool)
+        if np.count_nonzero(inner) < MIN_INNER_PX:
+            inner = dark
+        ai, bi = a[inner], b[inner]
+        sb, sa = float(bi.std()), float(ai.std())
+        if sb < MIN_TEXTURE:
+            return plain_ok and np.count_nonzero(np.abs(ai / np.maximum(bi, 1.0) - ratio) <= CORE_TOL) >= \
+                FLAT_CORE_SHARE * len(ai)
+        if sa < 1e-3:
+            return False
+        ncc = float(np.mean((ai - ai.mean()) * (bi - bi.mean()))) / (sa * sb)
         return ncc >= MIN_TEXTURE_NCC
+
+
+def _cell_correlation(a: np.ndarray, b: np.ndarray, dark: np.ndarray) -> tuple[int, int]:
+    """(textured dark cells, those where image and road correlate) over CELL_PX square cells of a box."""
+    c = CELL_PX
+    ny, nx = a.shape[0] // c, a.shape[1] // c
+    if ny == 0 or nx == 0:
+        return 0, 0
+
+    def cells(x: np.ndarray) -> np.ndarray:
+        return x[:ny * c, :nx * c].reshape(ny, c, nx, c).swapaxes(1, 2).reshape(ny * nx, c * c)
+
+    A, B = cells(a), cells(b)
+    A = A - A.mean(axis=1, keepdims=True)
+    B = B - B.mean(axis=1, keepdims=True)
+    sa, sb = np.sqrt((A * A).mean(axis=1)), np.sqrt((B * B).mean(axis=1))
+    ok = (cells(dark).mean(axis=1) >= CELL_DARK_SHARE) & (sb >= MIN_TEXTURE)
+    ncc = (A[ok] * B[ok]).mean(axis=1) / np.maximum(sa[ok] * sb[ok], 1e-6)
+    return int(ok.sum()), int(np.count_nonzero(ncc >= MIN_TEXTURE_NCC))

@@ -81,6 +81,10 @@ SHADOW_MAX_WIDTH_M = 9.0
 SHADOW_GAP_M = 4.0
 SHADOW_DY_M = 6.0
 SHADOW_SPEED_TOL = 0.3  # a new group's features have not settled to its speed yet
+# A group that the image test finds to be only a shadow on the road in most frames of its first watch
+# (its caster may be lanes away under a low sun, or out of view) is no vehicle: it is retired unreported.
+LONE_SHADOW_TESTS = 8  # frames tested before it is judged ...
+LONE_SHADOW_SHARE = 0.6  # ... and the share of them that must find a shadow (a vehicle's: under 0.4)
 
 
 @njit(cache=True)
@@ -272,6 +276,7 @@ class VehicleTrack:
     own_length: float = 0.0  # the group's length before fragments joined it
     merged: bool = False
     votes: tuple[int, int, float] = (0, 0, 0.0)  # (candidate host, consecutive frames it matched, place on it)
+    shadow_frames: tuple[int, int] = (0, 0)  # (frames tested, frames found only a shadow on the road)
     ground_lens: list[tuple[float, float]] = field(default_factory=list)  # (distance, height-corrected length)
     ground: tuple[float, float] | None = None  # reported length and far end on the road
     still_y: float = float("nan")  # where the near end has stood (within STILL_M) ...
@@ -382,9 +387,11 @@ class Grouper:
         return claimed
 
     def step(self, t: float, s: np.ndarray, px: np.ndarray, lane: np.ndarray, alive: np.ndarray, age: np.ndarray,
-             is_shadow: Callable[[np.ndarray, np.ndarray], bool] | None = None) -> tuple[list[VehicleState], np.ndarray]:
+             is_shadow: Callable[[np.ndarray, np.ndarray | None], bool] | None = None,
+             ) -> tuple[list[VehicleState], np.ndarray]:
         """Returns the vehicle states for this frame and the feature slots to retire (finalised vehicles).
-        is_shadow(points, caster points) tells whether image points lie on a shadow of the caster's."""
+        is_shadow(points, caster points) tells whether image points lie on a shadow of the caster's (with
+        caster None: on a shadow at all)."""
         p = self.p
         live = np.flatnonzero(alive)
         retire: list[np.ndarray] = []
@@ -466,6 +473,11 @@ class Grouper:
                 vy=vy, length=length, n_features=int(len(members)),
             )
             tr.last = st
+            if is_shadow is not None and self._lone_shadow(tr, t, px[members], is_shadow):
+                self.merged_now.add(vid)
+                self.tracks.pop(vid)
+                retire.append(members)
+                continue
             if not tr.merged:
                 tr.own_length = length
             tr.trajectory.append((t, st.x, rep_y))
@@ -668,6 +680,17 @@ class Grouper:
             if gap <= SHADOW_GAP_M and width <= SHADOW_MAX_WIDTH_M and shadow is not None and shadow(members, vid):
                 return vid
         return None
+
+    @staticmethod
+    def _lone_shadow(tr: VehicleTrack, t: float, pts: np.ndarray,
+                     is_shadow: Callable[[np.ndarray, np.ndarray | None], bool]) -> bool:
+        """Whether a young group (until RECHECK_S after its report) has turned out to be only a shadow."""
+        if tr.reported and t - tr.report_t > RECHECK_S:
+            return False
+        n, hits = tr.shadow_frames
+        n, hits = n + 1, hits + int(is_shadow(pts, None))
+        tr.shadow_frames = (n, hits)
+        return n >= LONE_SHADOW_TESTS and hits >= LONE_SHADOW_SHARE * n
 
     def _entered(self, tr: VehicleTrack, t: float) -> bool:
         """Whether a newly reported vehicle entered the view: first seen in its lane's detection zone, and

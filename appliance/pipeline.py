@@ -160,7 +160,7 @@ class VisionPipeline:
         c3 = time.perf_counter()
         self.background.update(img)
         states, retire = self.grouper.step(frame.t, tr.s, tr.px, tr.lane, tr.alive, tr.age,
-                                           lambda pts, caster: self.background.is_attached_shadow(img, pts, caster))
+                                           lambda pts, caster: self._is_shadow(img, pts, caster))
         if len(retire):
             tr.kill(retire)
         states = self._hold_new(states)
@@ -179,6 +179,13 @@ class VisionPipeline:
         st["fiducials_ok"] = self.stabiliser.n_ok
         st["fiducials_total"] = self.stabiliser.n_total
         return states
+
+    def _is_shadow(self, img: np.ndarray, pts: np.ndarray, caster: np.ndarray | None) -> bool:
+        """The grouper's image test: are pts only a shadow on the road (that reaches the caster's points)? With
+        no caster to show for it, the road's texture must be seen through the shadow."""
+        if caster is None:
+            return self.background.is_shadow(img, pts, plain_ok=False)
+        return self.background.is_attached_shadow(img, pts, caster)
 
     def _hold_new(self, states: list[VehicleState]) -> list[VehicleState]:
         """Hold each new vehicle's states for HOLD_S, then release them as one report whose trajectory

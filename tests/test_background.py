@@ -50,8 +50,24 @@ def test_shadow_is_told_from_dark_and_bright_vehicles():
     flat_car = road.copy()
     flat_car[40:71, 50:101] = 55  # uniformly dark: no texture at all
     assert not bg.is_shadow(flat_car, pts)
+    beside = road.copy()  # a plain grey car and its own shadow beside it, half the box each
+    beside[40:71, 50:75] = np.clip(62 + np.random.default_rng(3).normal(0, 3, (31, 25)), 0, 255).astype(np.uint8)
+    beside[40:71, 75:101] = (road[40:71, 75:101] * 0.5).astype(np.uint8)
+    assert not bg.is_shadow(beside, pts)  # over the whole box the shadow's half correlates with the road
     bright_car = shadow.copy()
     bright_car[45:60, 60:90] = 220  # a vehicle standing in the shadow
     assert not bg.is_shadow(bright_car, pts)
     assert not bg.is_shadow(road, pts)  # nothing there
     assert not Background().is_shadow(shadow, pts)  # no background learnt yet: no answer
+
+
+def test_on_a_plain_road_an_even_dimming_counts_only_where_allowed():
+    """Where the road has no texture to see through a shadow, an evenly dimmed box may be a shadow (with its
+    caster beside it, the grouper's attached test) but is no proof of one on its own (plain_ok=False)."""
+    road = np.full((120, 160), 120, np.uint8)
+    bg = _learnt(road)
+    pts = np.array([[50.0, 40.0], [100.0, 40.0], [50.0, 70.0], [100.0, 70.0]])
+    dimmed = road.copy()
+    dimmed[40:71, 50:101] = 60
+    assert bg.is_shadow(dimmed, pts)
+    assert not bg.is_shadow(dimmed, pts, plain_ok=False)
