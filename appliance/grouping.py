@@ -84,7 +84,7 @@ SHADOW_SPEED_TOL = 0.3  # a new group's features have not settled to its speed y
 # A group that the image test finds to be only a shadow on the road in most frames of its first watch
 # (its caster may be lanes away under a low sun, or out of view) is no vehicle: it is retired unreported.
 LONE_SHADOW_TESTS = 8  # frames tested before it is judged ...
-LONE_SHADOW_SHARE = 0.6  # ... and the share of them that must find a shadow (a vehicle's: under 0.4)
+LONE_SHADOW_SHARE = 0.6  # ... and the share of them that must find a shadow
 
 
 @njit(cache=True)
@@ -474,9 +474,7 @@ class Grouper:
             )
             tr.last = st
             if is_shadow is not None and self._lone_shadow(tr, t, px[members], is_shadow):
-                self.merged_now.add(vid)
-                self.tracks.pop(vid)
-                retire.append(members)
+                self._retire_quietly(vid, members, retire)
                 continue
             if not tr.merged:
                 tr.own_length = length
@@ -500,10 +498,8 @@ class Grouper:
         # fragments are judged once every vehicle of this frame is up to date
         for tr, st, sign, members, length in pending:
             host = self._host_of(tr, st, sign, members, shadow)
-            if host == GHOST:  # the rest of a vehicle already finalised: retire it quietly
-                self.merged_now.add(tr.id)
-                self.tracks.pop(tr.id)
-                retire.append(members)
+            if host == GHOST:  # the rest of a vehicle already finalised
+                self._retire_quietly(tr.id, members, retire)
                 continue
             if host is not None and tr.reported:
                 off = self._place
@@ -531,9 +527,7 @@ class Grouper:
                 st.entered = self._entered(tr, st.t)
             out.append(st)
         for vid in self._passed_through(t):
-            self.tracks.pop(vid)
-            retire.append(groups[vid])
-            self.merged_now.add(vid)
+            self._retire_quietly(vid, groups[vid], retire)
             out = [st for st in out if st.id != vid]
         slots = np.concatenate(retire) if retire else np.zeros(0, np.int64)
         return [self._grounded(st, ground.get(st.id)) for st in out], slots
@@ -680,6 +674,13 @@ class Grouper:
             if gap <= SHADOW_GAP_M and width <= SHADOW_MAX_WIDTH_M and shadow is not None and shadow(members, vid):
                 return vid
         return None
+
+    def _retire_quietly(self, vid: int, members: np.ndarray, retire: list[np.ndarray]) -> None:
+        """End a group that is no vehicle of its own: never finalised, its held report never released (the
+        pipeline drops what is in merged_now), its features retired."""
+        self.tracks.pop(vid)
+        self.merged_now.add(vid)
+        retire.append(members)
 
     @staticmethod
     def _lone_shadow(tr: VehicleTrack, t: float, pts: np.ndarray,
