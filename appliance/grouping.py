@@ -83,8 +83,10 @@ SHADOW_DY_M = 6.0
 SHADOW_SPEED_TOL = 0.3  # a new group's features have not settled to its speed yet
 # A group that the image test finds to be only a shadow on the road in most frames of its first watch
 # (its caster may be lanes away under a low sun, or out of view) is no vehicle: it is retired unreported.
-LONE_SHADOW_TESTS = 8  # frames tested before it is judged ...
-LONE_SHADOW_SHARE = 0.6  # ... and the share of them that must find a shadow
+# It is judged before its first report is released (pipeline.HOLD_S), whatever the frame rate:
+LONE_SHADOW_S = 0.25  # tested over this long ...
+LONE_SHADOW_TESTS = 5  # ... and in at least this many frames ...
+LONE_SHADOW_SHARE = 0.6  # ... of which this share must find a shadow
 
 
 @njit(cache=True)
@@ -276,7 +278,8 @@ class VehicleTrack:
     own_length: float = 0.0  # the group's length before fragments joined it
     merged: bool = False
     votes: tuple[int, int, float] = (0, 0, 0.0)  # (candidate host, consecutive frames it matched, place on it)
-    shadow_frames: tuple[int, int] = (0, 0)  # (frames tested, frames found only a shadow on the road)
+    shadow_tests: tuple[float, int, int] | None = None  # (first test's time, frames tested, frames found
+    # only a shadow on the road)
     ground_lens: list[tuple[float, float]] = field(default_factory=list)  # (distance, height-corrected length)
     ground: tuple[float, float] | None = None  # reported length and far end on the road
     still_y: float = float("nan")  # where the near end has stood (within STILL_M) ...
@@ -532,6 +535,11 @@ class Grouper:
         slots = np.concatenate(retire) if retire else np.zeros(0, np.int64)
         return [self._grounded(st, ground.get(st.id)) for st in out], slots
 
+    def matching_host(self, vid: int) -> bool:
+        """Whether a reported group is gathering votes to join a vehicle it may be a part of."""
+        tr = self.tracks.get(vid)
+        return tr is not None and tr.reported and 0 < tr.votes[1] < RECHECK_VOTES
+
     def _passed_through(self, t: float) -> list[int]:
         """Reported groups standing still for STALL_S that a moving vehicle of their lane drove through
         in this frame."""
@@ -688,10 +696,10 @@ class Grouper:
         """Whether a young group (until RECHECK_S after its report) has turned out to be only a shadow."""
         if tr.reported and t - tr.report_t > RECHECK_S:
             return False
-        n, hits = tr.shadow_frames
+        t0, n, hits = tr.shadow_tests or (t, 0, 0)
         n, hits = n + 1, hits + int(is_shadow(pts, None))
-        tr.shadow_frames = (n, hits)
-        return n >= LONE_SHADOW_TESTS and hits >= LONE_SHADOW_SHARE * n
+        tr.shadow_tests = (t0, n, hits)
+        return t - t0 >= LONE_SHADOW_S and n >= LONE_SHADOW_TESTS and hits >= LONE_SHADOW_SHARE * n
 
     def _entered(self, tr: VehicleTrack, t: float) -> bool:
         """Whether a newly reported vehicle entered the view: first seen in its lane's detection zone, and

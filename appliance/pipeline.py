@@ -15,7 +15,7 @@ import numpy as np
 from appliance.background import Background
 from appliance.config import SiteConfig
 from appliance.corners import CornerDetector
-from appliance.grouping import SETTLED_AGE, Grouper
+from appliance.grouping import RECHECK_S, SETTLED_AGE, Grouper
 from appliance.stabilise import Stabiliser
 from appliance.tracker import FeatureTracker
 from appliance.types import Frame, VehicleState
@@ -38,6 +38,8 @@ BACKFILL_MIN_FEATURES = 4  # groups with fewer features when released are not ex
 # its speed is measured over its own points before its trajectory is extended back to the region entry,
 # and a group that merges into another meanwhile never reaches the measures.
 HOLD_S = 0.5
+# ... longer while it is matching a vehicle it may be a part of (grouping's recheck votes), up to RECHECK_S:
+# released before the votes are in, a part crossing the count line would already be a count
 HOLD_MIN_TRAVEL_M = 3.0  # ... and until it has moved this far (an occluder's edge where vehicles emerge does not)
 # A feature that loses this much speed faster than a vehicle can brake has latched onto something static
 # (an occluder's edge where vehicles pass behind it): it is dropped.
@@ -202,7 +204,9 @@ class VisionPipeline:
             held.append(v)
             seen.add(v.id)
             moved = abs(v.y_front - held[0].y_front) >= HOLD_MIN_TRAVEL_M
-            if v.finished or (v.t - held[0].t >= HOLD_S and moved):
+            waited = v.t - held[0].t
+            if v.finished or (waited >= HOLD_S and moved and not (
+                    waited < RECHECK_S and self.grouper.matching_host(v.id))):
                 del self.held[v.id]
                 first = _released(held)  # v itself, with the held points before it
                 self._backfill(first, held)

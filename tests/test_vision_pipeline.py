@@ -372,6 +372,40 @@ def test_a_held_group_that_joins_another_vehicle_is_never_released():
     assert run(merged=True) == []
 
 
+def test_a_held_group_matching_a_vehicle_waits_for_the_votes():
+    """A reported group that the grouper is watching as a possible part of another vehicle (its recheck
+    votes are coming in) is held past HOLD_S until the votes are in: joined, it never goes out; when the
+    match breaks off it is released then (released at HOLD_S, a part would count if it crossed the line)."""
+    from appliance.grouping import RECHECK_VOTES, VehicleTrack
+    from appliance.pipeline import HOLD_S
+    from appliance.types import VehicleState
+
+    def run(join: bool) -> list[float]:
+        pipe = VisionPipeline(parse_site(site_dict()))
+        pipe.first_t = 0.0
+        tr = pipe.grouper.tracks[2] = VehicleTrack(id=2, first_t=1.0, lane_index=1, reported=True, report_t=1.0)
+        released = []
+        for k in range(30):
+            t = 1.0 + 0.04 * k
+            y = 60.0 - 20.0 * (t - 1.0)
+            votes = k - 8  # the match starts 0.32 s after the report
+            tr.votes = (5, votes, 0.0) if 0 < votes < RECHECK_VOTES or (not join and votes == RECHECK_VOTES) \
+                else (0, 0, 0.0)
+            joined = join and votes == RECHECK_VOTES
+            pipe.grouper.merged_now = {2} if joined else set()
+            states = [] if join and votes >= RECHECK_VOTES else [VehicleState(
+                id=2, t=t, x=-1.75, y_front=y, y_rear=y + 4.5, vx=0.0, vy=-20.0, length=4.5, n_features=6,
+                trajectory=[(t - 0.2, -1.75, y + 4.0)] if k == 0 else None)]
+            if joined:
+                pipe.grouper.tracks.pop(2)
+            released += [v.t for v in pipe._hold_new(states) if v.id == 2 and v.trajectory]
+        return released
+
+    assert run(join=True) == []
+    first = run(join=False)
+    assert len(first) == 1 and first[0] - 1.0 > HOLD_S + 0.2, first  # held while the votes came in
+
+
 def test_a_shadow_cast_into_the_next_lane_is_not_a_second_vehicle(site, monkeypatch):
     """A low sun casts a vehicle's shadow across the next lane; its corners move with the vehicle like a
     vehicle's. The shadow test (darker road, road texture kept, reaching the vehicle) joins it to its caster."""
@@ -415,7 +449,8 @@ def test_a_shadow_cast_two_lanes_across_is_no_vehicle(monkeypatch):
     monkeypatch.setattr(grouping, "LONE_SHADOW_TESTS", 10**6)  # never judged a lone shadow
     without = lanes_of_finished()
     assert without[-1] > 1.75, without  # the scene does make the far part a "vehicle" (in lane 3)
-    monkeypatch.setattr(grouping, "LONE_SHADOW_TESTS", 8)
+    monkeypatch.undo()
+    monkeypatch.setattr(background, "READY_UPDATES", 1)
     xs = lanes_of_finished()
     assert sum(1 for x in xs if x < -1.75) == 1 and xs[-1] < 1.75, xs  # the car; nothing in lane 3
 
