@@ -8,7 +8,6 @@ reported one is watched for RECHECK_S more and joins once it keeps one place on 
 
 from __future__ import annotations
 
-import bisect
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
@@ -59,8 +58,18 @@ RECHECK_DRIFT_M = 1.5  # ... at a steady place on it (this much drift: a separat
 RECHECK_K_MIN = 1.12
 MAX_HEIGHT_M = 4.5  # the tallest vehicle: bounds the height magnification of a fragment
 SPEED_WINDOW_S = 0.5  # speeds compared for the height magnification are averaged over this long
-GROUND_LEN_FRAMES = 15  # reported length: median of the height-corrected lengths of this many frames,
-# those when the vehicle was nearest the camera (an error in k costs the more the further away it is)
+# Reported length: each feature's place on the road behind the near end, from a straight-line fit of its
+# projected distance from the camera's foot against the near end's over its life in the group (slope: its
+# height magnification k; far steadier than one frame's speed ratio), once it has travelled enough with it
+FIT_FRAMES = 10
+FIT_TRAVEL_SD_M = 1.5  # standard deviation of the near end's distance over the fit (a 5 m travel at least)
+# The far end is the furthest fitted feature with another this close (a lone one further out is mostly a
+# misfit: a feature that slid along an edge, or one on the road in the vehicle's shadow)
+FIT_NEIGHBOUR_M = 1.0
+# A vehicle none of whose fitted features lies this far behind its near end shows nothing of its extent (at
+# night only its lights and their beam on the road ahead): it is reported at a typical car's length.
+FIT_MIN_EXTENT_M = 0.5
+NOMINAL_LENGTH_M = 4.5
 # The far end seen is a roofline, not the bumper: a car's windscreen top lies about a third of its length
 # behind its front (the bonnet is hidden from behind), its rear window's top about a sixth ahead of its rear.
 HIDDEN_SHARE_FRONT = 0.3
@@ -255,10 +264,6 @@ def _median(a) -> float:
     return float(a[n // 2]) if n % 2 else float((a[n // 2 - 1] + a[n // 2]) / 2.0)
 
 
-def _median_length(samples: list[tuple[float, float]], default: float | None) -> float | None:
-    return _median([g for _, g in samples]) if samples else default
-
-
 @dataclass
 class VehicleTrack:
     """Bookkeeping of one vehicle hypothesis across frames."""
@@ -280,8 +285,8 @@ class VehicleTrack:
     votes: tuple[int, int, float] = (0, 0, 0.0)  # (candidate host, consecutive frames it matched, place on it)
     shadow_tests: tuple[float, int, int] | None = None  # (first test's time, frames tested, frames found
     # only a shadow on the road)
-    ground_lens: list[tuple[float, float]] = field(default_factory=list)  # (distance, height-corrected length)
-    ground: tuple[float, float] | None = None  # reported length and far end on the road
+    ground: tuple[float, float, int] | None = None  # reported length, far end on the road, lane direction
+    fitted: bool = False  # the length has been measured from fitted features (see Grouper._ground_length)
     still_y: float = float("nan")  # where the near end has stood (within STILL_M) ...
     still_t: float = 0.0  # ... since when
     # the near end's speed over SPEED_WINDOW_S (or None), for the trajectory's (last t, length) it was taken on
@@ -319,6 +324,10 @@ class Grouper:
         self.y0 = np.zeros((n, n), np.float32)
         self.labels = np.full(n, -1, np.int64)
         self.fvid = np.full(n, -1, np.int64)
+        # per feature, its straight-line fit against its group's near end (see _ground_length): frames, and
+        # the sums of d (the near end's distance from the camera's foot), q (its own), d * d and d * q
+        self.fit = np.zeros((n, 5), np.float64)
+        self.fit_vid = np.full(n, -1, np.int64)  # the group that fit is for
         self.tracks: dict[int, VehicleTrack] = {}
         self.next_vid = 1
         self.finished_total = 0
@@ -337,6 +346,7 @@ class Grouper:
         self.state[slots, :] = UNSEEN
         self.state[:, slots] = UNSEEN
         self.fvid[slots] = -1
+        self.fit_vid[slots] = -1
 
     def _components(self, live: np.ndarray, s: np.ndarray, age: np.ndarray) -> None:
         """Label the connected components of the pair graph (self.labels). With the camera known, no feature
@@ -400,7 +410,7 @@ class Grouper:
         retire: list[np.ndarray] = []
         out: list[VehicleState] = []
         groups: dict[int, np.ndarray] = {}
-        ground: dict[int, tuple[float, float] | None] = {}
+        ground: dict[int, tuple[float, float, int] | None] = {}
         pending: list = []
         self.merged_now = set()
         if len(live):
@@ -455,14 +465,14 @@ class Grouper:
                     rep_y = max(prev, min(max(rep_y, ahead), rep_y + MAX_LEAD_M))
             else:
                 tr.start_y = rep_y
-            g = self._ground_length(tr, sign, body, ys, s[rep, 1], vy_near, age, s[:, 3], length)
+            g = self._ground_length(tr, sign, body, s, age, rep_y, length)
             if sign < 0:
                 front, rear = rep_y, rep_y + length
-                tr.ground = (g, rep_y + g)
+                tr.ground = (g, rep_y + g, sign)
             else:  # the front of a receding vehicle is its far end: keep it monotone too
                 front = rep_y + length if tr.last is None else max(rep_y + length, tr.last.y_front)
                 rear = rep_y
-                tr.ground = (g, max(rep_y + g, tr.ground[1]) if tr.ground else rep_y + g)
+                tr.ground = (g, max(rep_y + g, tr.ground[1]) if tr.ground else rep_y + g, sign)
             ground[vid] = tr.ground
             # velocity: median over the settled features near the representative one (the lowest part
             # of the vehicle; higher features move faster in the road projection)
@@ -559,35 +569,55 @@ class Grouper:
                     break
         return found
 
-    def _ground_length(self, tr: VehicleTrack, sign: int, members: np.ndarray, ys: np.ndarray, near_y: float,
-                       vy_near: float, age: np.ndarray, vy: np.ndarray, length: float) -> float:
-        """The vehicle's length on the road: the group's far end is usually a roofline, projected beyond the
-        vehicle by k = its projected speed over the near end's. Undoing k (camera known) gives the roofline's
-        place over the road; the part of the vehicle hidden beyond it is added as a share of the length."""
-        if self.foot is None or abs(vy_near) < MIN_SPEED_MPS or length <= 0 or tr.lane_index <= 0:
+    def _ground_length(self, tr: VehicleTrack, sign: int, members: np.ndarray, s: np.ndarray, age: np.ndarray,
+                       near_y: float, length: float) -> float:
+        """The vehicle's length on the road: where its far fitted features (usually a roofline, projected
+        beyond the vehicle by its height) lie over the road, plus the part of the vehicle hidden beyond it as a
+        share of the length. Without the camera: the features' span."""
+        if self.foot is None or tr.lane_index <= 0:
             return length
-        far_y = float(ys.max())
+        if sign > 0 and tr.fitted and tr.ground:
+            # a receding vehicle is seen best as it enters, nearest the camera; its far end moves with it
+            # from then on (a length that kept changing would add distance or time it did not travel)
+            return tr.ground[0]
         cy = self.foot[1]
-        lens = tr.ground_lens
-        if len(lens) >= GROUND_LEN_FRAMES and abs(far_y - cy) >= lens[-1][0]:
-            return tr.ground[0] if tr.ground else _median_length(lens, length)  # further than every kept sample
-        far = members[(far_y - ys < NEAR_REP_M) & (age[members] >= 3)]
-        if len(far):
-            k = min(max(_median(vy[far]) / vy_near, 1.0), self.k_max)
-            seen = max(cy + (far_y - cy) / k - float(near_y), 0.0)
-            share = HIDDEN_SHARE_FRONT if sign > 0 else HIDDEN_SHARE_REAR
-            bisect.insort(lens, (abs(far_y - cy), min(seen / (1.0 - share), length)))
-            del lens[GROUND_LEN_FRAMES:]  # kept sorted by distance: the nearest ones
-        return _median_length(lens, length)
+        m = members[age[members] >= 3]
+        fit = self.fit
+        stale = self.fit_vid[m] != tr.id  # new in this group: a fit against another near end does not hold
+        fit[m[stale]] = 0.0
+        self.fit_vid[m[stale]] = tr.id
+        d, q = near_y - cy, s[m, 1] - cy
+        fit[m] += np.stack([np.ones_like(q), np.full_like(q, d), q, np.full_like(q, d * d), d * q], axis=1)
+        f = fit[m]
+        n = f[:, 0]
+        var = f[:, 3] / n - (f[:, 1] / n) ** 2
+        cov = f[:, 4] / n - f[:, 1] * f[:, 2] / (n * n)
+        ok = (n >= FIT_FRAMES) & (var >= FIT_TRAVEL_SD_M ** 2)
+        # until some are fitted, or while features not yet fitted lie further (a fragment that just joined):
+        # the last length, or at first the features' span
+        if not ok.any() or q[~ok].max(initial=-np.inf) > q[ok].max():
+            return tr.ground[0] if tr.ground else length
+        f, n = f[ok], n[ok]
+        k = np.clip(cov[ok] / var[ok], 1.0, self.k_max)
+        places = np.sort(f[:, 2] / n / k - f[:, 1] / n)  # on the road, behind the near end
+        close = np.diff(places) <= FIT_NEIGHBOUR_M
+        behind = float(places[1:][close][-1]) if close.any() else _median(places)
+        tr.fitted = True
+        if behind < FIT_MIN_EXTENT_M:
+            return NOMINAL_LENGTH_M
+        share = HIDDEN_SHARE_FRONT if sign > 0 else HIDDEN_SHARE_REAR
+        # never longer than the features' span now, whose far end is projected beyond the vehicle: a misfit
+        # does not make a vehicle longer than what is seen of it
+        return min(behind / (1.0 - share), length)
 
     @staticmethod
-    def _grounded(st: VehicleState, ground: tuple[float, float] | None) -> VehicleState:
+    def _grounded(st: VehicleState, ground: tuple[float, float, int] | None) -> VehicleState:
         """The reported copy of a state: its far end and length on the road (the tracker keeps the
         features' span for judging fragments)."""
         if ground is None:
             return st
-        g, far = ground
-        if st.y_front >= st.y_rear:
+        g, far, sign = ground
+        if sign > 0:  # receding: the far end is the front (a one-feature group's span gives no direction)
             return replace(st, y_front=far, length=g)
         return replace(st, y_rear=far, length=g)
 

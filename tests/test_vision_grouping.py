@@ -121,14 +121,18 @@ def test_a_group_standing_still_before_it_moves_dates_its_trajectory_from_the_mo
 
 def test_reported_length_is_the_vehicle_on_the_road_not_its_roof_projected_beyond_it():
     """A car's roofline, projected onto the road, lies metres beyond the car and runs ahead of it; the
-    reported length undoes that (from the roof's speed over the near end's) and is the car's length."""
-    front, length = 44.0, 4.5
+    reported length undoes that (from the roof's speed over the near end's) and is the car's length, once the
+    features have been followed for a few metres."""
+    from appliance.grouping import NOMINAL_LENGTH_M
+
+    front, length = 44.0, 3.6
+    assert abs(length - NOMINAL_LENGTH_M) > 0.8  # not a typical car: that would pass for the wrong reason
     body = (_box(-2.6, -0.9, front, front + 1.2, 10, 5), -15.0, 1, 0, 0.0)  # bonnet and bumper, low
     cabin = (_box(-2.5, -1.0, front + 0.32 * length, front + 0.84 * length, 10, 6), -15.0, 1, 0, 1.45)
     seen = _run([body, cabin], frames=60)
     zones = SiteZones(parse_site(site_dict()))
     cy, ch = zones.camera[1], zones.camera[2]
-    states = [st for ss in seen.values() for st in ss if not st.finished and st.y_front < 40.0]
+    states = [st for ss in seen.values() for st in ss if not st.finished and st.y_front < 36.0]
     assert states, seen
     raw = cy + ch / (ch - 1.45) * (front + 0.84 * length - cy) - front  # the features' span at the start
     assert raw > length + 1.5, raw  # so the test can tell the two apart
@@ -285,3 +289,15 @@ def test_a_near_end_held_at_the_image_edge_does_not_slow_the_vehicle():
     assert moving.steady_vy(24.0) == pytest.approx(25.0)
     moving.trajectory = moving.trajectory[:4]  # under 0.2 s: only the features' speed
     assert moving.steady_vy(24.0) == pytest.approx(24.0)
+
+
+def test_a_vehicle_seen_only_by_its_lights_is_reported_at_a_typical_length():
+    """At night an approaching vehicle is its headlights: nothing of its body behind them is seen, so its
+    length is not measured as the lights' few centimetres but reported as a typical car's."""
+    from appliance.grouping import NOMINAL_LENGTH_M
+
+    lights = (_box(-2.5, -1.0, 44.0, 44.2, 6, 7), -15.0, 1, 0, 0.6)
+    seen = _run([lights], frames=60)
+    states = [st for ss in seen.values() for st in ss if not st.finished and st.y_front < 36.0]  # followed 8 m
+    assert states, seen
+    assert all(st.length == NOMINAL_LENGTH_M for st in states), [round(st.length, 2) for st in states]
