@@ -126,6 +126,19 @@ class TruthComparison:
         return 100.0 * (r - t) / t if t else (0.0 if r == 0 else float("inf"))
 
 
+def period_errors(truth: dict, result: dict) -> dict[str, float]:
+    """One lane-period's errors: flow, density and speed in per cent, occupancy in points (where both
+    sides have the value)."""
+    errors = {}
+    for name, col in (("flow", "flow_vph"), ("density", "density_vpkm"), ("speed", "speed_kmh")):
+        e = rel_err_pct(result.get(col), truth.get(col))
+        if e is not None:
+            errors[name] = e
+    if truth.get("occupancy_pct") is not None and result.get("occupancy_pct") is not None:
+        errors["occupancy"] = float(result["occupancy_pct"]) - float(truth["occupancy_pct"])
+    return errors
+
+
 def compare_with_truth(truth: dict, results: dict, include_partial: bool = True) -> TruthComparison:
     cmp = TruthComparison(errors={"flow": [], "density": [], "speed": []})
     res = {(int(r["lane"]), float(r["period_start"])): r for r in results["periods"]}
@@ -138,12 +151,8 @@ def compare_with_truth(truth: dict, results: dict, include_partial: bool = True)
         lane = key[0]
         tc, rc = cmp.lane_counts.get(lane, (0, 0))
         cmp.lane_counts[lane] = (tc + int(t["count"]), rc + int(r["count"]))
-        for name, col in (("flow", "flow_vph"), ("density", "density_vpkm"), ("speed", "speed_kmh")):
-            e = rel_err_pct(r.get(col), t.get(col))
-            if e is not None:
-                cmp.errors[name].append(e)
-        if t.get("occupancy_pct") is not None and r.get("occupancy_pct") is not None:
-            cmp.occupancy_pp.append(float(r["occupancy_pct"]) - float(t["occupancy_pct"]))
+        for name, e in period_errors(t, r).items():
+            (cmp.occupancy_pp if name == "occupancy" else cmp.errors[name]).append(e)
     for ev, slot in ((truth.get("loop_events", []), 0), (results.get("loop_events", []), 1)):
         for e in ev:
             ch = int(e["channel"])

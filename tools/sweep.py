@@ -18,7 +18,7 @@ import click
 import numpy as np
 
 from tools.evaluate import (TABLE1_BANDS, EvaluateError, TruthComparison, compare_with_truth, load_results,
-                            load_truth, rel_err_pct, table1)
+                            load_truth, period_errors, table1)
 from tools.simulate.presets import PRESETS
 
 TARGET_PRESETS = ("free-flow", "dense", "shockwave", "long-shadows", "night", "rain", "wind-shake",
@@ -72,18 +72,10 @@ def _lane_rows(name: str, whole: TruthComparison, periods: TruthComparison) -> l
     for lane in sorted(whole.lane_counts):
         t, r = whole.lane_counts[lane]
         row = {"scene": name, "lane": lane, "truth": t, "result": r, "count_err_pct": whole.count_error_pct(lane)}
+        errors = [period_errors(tp, rp) for tp, rp in periods.pairs if int(tp["lane"]) == lane]
         for key in ("flow", "density", "speed"):
-            row[f"{key}_err_pct"] = []
-        row["occupancy_err_pp"] = []
-        for tp, rp in periods.pairs:
-            if int(tp["lane"]) != lane:
-                continue
-            for key, col in (("flow", "flow_vph"), ("density", "density_vpkm"), ("speed", "speed_kmh")):
-                e = rel_err_pct(rp.get(col), tp.get(col))
-                if e is not None:
-                    row[f"{key}_err_pct"].append(e)
-            if tp.get("occupancy_pct") is not None and rp.get("occupancy_pct") is not None:
-                row["occupancy_err_pp"].append(float(rp["occupancy_pct"]) - float(tp["occupancy_pct"]))
+            row[f"{key}_err_pct"] = [e[key] for e in errors if key in e]
+        row["occupancy_err_pp"] = [e["occupancy"] for e in errors if "occupancy" in e]
         rows.append(row)
     return rows
 
