@@ -250,11 +250,12 @@ def _moving_body(members: np.ndarray, s: np.ndarray) -> np.ndarray:
 
 def _extent(o: VehicleState, length: float | None = None) -> tuple[float, float]:
     """Along-road span a vehicle surely covers: its features' span (or its own length without joined
-    fragments), at least MIN_LENGTH_M behind its front, plus a metre of slack each way."""
-    sign = 1.0 if o.y_front >= o.y_rear else -1.0
+    fragments), at least MIN_LENGTH_M, from its near end (the end nearer the camera, lower Y: the front of an
+    approaching vehicle, the rear of a receding one; the far end is a roofline projected beyond the vehicle),
+    plus a metre of slack each way."""
+    near = min(o.y_front, o.y_rear)
     span = abs(o.y_front - o.y_rear) if length is None else length
-    rear = o.y_front - sign * max(span, MIN_LENGTH_M)
-    return min(o.y_front, rear) - 1.0, max(o.y_front, rear) + 1.0
+    return near - 1.0, near + max(span, MIN_LENGTH_M) + 1.0
 
 
 def _median(a) -> float:

@@ -301,3 +301,19 @@ def test_a_vehicle_seen_only_by_its_lights_is_reported_at_a_typical_length():
     states = [st for ss in seen.values() for st in ss if not st.finished and st.y_front < 36.0]  # followed 8 m
     assert states, seen
     assert all(st.length == NOMINAL_LENGTH_M for st in states), [round(st.length, 2) for st in states]
+
+
+def test_a_receding_vehicles_extent_starts_at_its_near_end():
+    """The near end of a receding vehicle is its rear (nearest the camera); its front is a roofline
+    projected beyond it. The span it surely covers runs from the rear, whatever fragments lengthened its
+    features' span since its own length was taken."""
+    from appliance.grouping import _extent
+    from appliance.types import VehicleState
+
+    receding = VehicleState(id=1, t=0.0, x=5.0, y_front=56.0, y_rear=28.4, vx=0.0, vy=24.0, length=27.6,
+                            n_features=30)
+    lo, hi = _extent(receding, 18.9)
+    assert lo <= 28.4 + 1.0 <= hi and hi == pytest.approx(28.4 + 18.9 + 1.0)
+    approaching = VehicleState(id=2, t=0.0, x=1.0, y_front=40.0, y_rear=52.0, vx=0.0, vy=-24.0, length=12.0,
+                               n_features=30)
+    assert _extent(approaching, 3.0) == pytest.approx((39.0, 40.0 + 4.5 + 1.0))  # at least a car's length
