@@ -86,3 +86,32 @@ def test_replay_truth_tracks_cli(scene, tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     cmp = compare_with_truth(load_truth(scene.truth_dir), load_results(out))
     assert all(t == res for t, res in cmp.lane_counts.values())
+
+
+def test_crossings_are_matched_with_the_truths_and_the_odd_ones_listed(scene, tmp_path):
+    """The perfect tracker's crossings all match the truth's; one taken out is listed as missed (with its
+    class), one added 3 s away from any other as extra; the CLI prints both lists."""
+    from tools.evaluate import compare_crossings_with_truth, format_crossing_lists
+
+    site = load_site(scene.site)
+    out = tmp_path / "perfect.csv"
+    write_results(replay_truth_tracks(scene.truth_dir, site), str(out), vehicles=False)
+    truth, res = load_truth(scene.truth_dir), load_results(out)
+    cmp = compare_crossings_with_truth(truth, res["crossings"])
+    assert len(cmp.matches) == len(res["crossings"]) >= 5 and not cmp.missed and not cmp.extra
+    gone = res["crossings"][2]
+    ts = sorted(float(c["t"]) for c in res["crossings"])
+    gap = max(range(len(ts) - 1), key=lambda i: ts[i + 1] - ts[i])
+    assert ts[gap + 1] - ts[gap] > 6.0
+    ghost = dict(res["crossings"][0], t=(ts[gap] + ts[gap + 1]) / 2, frame=None, vehicle_id=999)
+    crossings = [c for c in res["crossings"] if c is not gone] + [ghost]
+    cmp = compare_crossings_with_truth(truth, crossings)
+    assert [c["vehicle_id"] for c in cmp.extra] == [999]
+    assert len(cmp.missed) == 1 and cmp.missed[0]["lane"] == int(gone["lane"])
+    assert abs(cmp.missed[0]["t"] - float(gone["t"])) < 0.1
+    text = format_crossing_lists(cmp)
+    assert "vehicle 999" in text and f"{cmp.missed[0]['class']} {cmp.missed[0]['vehicle_id']}" in text
+    r = subprocess.run([sys.executable, "-m", "tools.cli", "evaluate", "--truth", str(scene.truth_dir), "--results",
+                        str(out), "--crossings"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "Count-line crossings vs the truth's" in r.stdout and "extra  lane" not in r.stdout

@@ -233,6 +233,56 @@ def compare_with_counts(counts: dict, crossings: list[dict], tolerance_frames: i
     return cmp
 
 
+def truth_crossings(vehicles_path: str | Path, lines: dict[int, float]) -> list[dict]:
+    """The simulator's crossings of each lane's count line (lane -> Y in metres): when a vehicle's front
+    passes it while in that lane, with its class and visible share then."""
+    tracks: dict[str, list[tuple[float, int, float, str, float]]] = {}
+    with open(vehicles_path, newline="") as f:
+        for r in csv.DictReader(f):
+            tracks.setdefault(r["vehicle_id"], []).append(
+                (float(r["t"]), int(r["lane"]), float(r["y_front_m"]), r["class"], float(r["visible_frac"])))
+    out = []
+    for vid, rows in tracks.items():
+        rows.sort()
+        for (t0, lane, y0, cls, vis), (t1, _, y1, _, _) in zip(rows, rows[1:]):
+            y = lines.get(lane)
+            if y is not None and y1 != y and (y0 - y) * (y1 - y) <= 0:  # a sample on the line: the next pair
+                out.append({"lane": lane, "t": t0 + (y - y0) / (y1 - y0) * (t1 - t0), "vehicle_id": vid,
+                            "class": cls, "visible": vis})
+    return sorted(out, key=lambda c: c["t"])
+
+
+def compare_crossings_with_truth(truth: dict, crossings: list[dict], tolerance_s: float = 1.0) -> CountComparison:
+    """Match result crossings with the truth's, per lane, nearest in time within tolerance_s (the rule of
+    the hand counts). A lane's count line is where its result crossings lie; a lane none crossed is
+    missing from the comparison."""
+    fps = float(truth["meta"].get("fps", 25.0))
+    lines = {int(c["lane"]): float(c["y"]) for c in crossings if c.get("y") is not None}
+    ref = truth_crossings(truth["vehicles_path"], lines)
+    for c in ref:
+        c["frame"] = int(round(c["t"] * fps))
+    counts = {"crossings": ref, "lanes": [{"id": lane} for lane in lines], "fps": fps}
+    return compare_with_counts(counts, crossings, int(round(tolerance_s * fps)), fps=fps)
+
+
+def format_crossing_lists(cmp: CountComparison, near_s: float = 1.0) -> str:
+    """Each extra crossing with the truth's crossings of any lane within near_s (what it may be a part
+    or shadow of), then each missed vehicle with its class and visible share."""
+    ref = [h for h, _ in cmp.matches] + cmp.missed
+    lines = []
+    for c in sorted(cmp.extra, key=lambda c: float(c["t"])):
+        t = float(c["t"])
+        near = sorted((h for h in ref if abs(h["t"] - t) <= near_s), key=lambda h: abs(h["t"] - t))
+        beside = ", ".join(f"lane {h['lane']} {h['class']} {h['vehicle_id']} ({h['t'] - t:+.2f} s)" for h in near)
+        length = f", {float(c['length_m']):.1f} m" if c.get("length_m") is not None else ""
+        lines.append(f"  extra  lane {c['lane']} t {t:8.2f} s  vehicle {c.get('vehicle_id')}{length}"
+                     f"  truth near: {beside or 'none'}")
+    for h in sorted(cmp.missed, key=lambda h: h["t"]):
+        lines.append(f"  missed lane {h['lane']} t {h['t']:8.2f} s  {h['class']} {h['vehicle_id']}, "
+                     f"{100 * h['visible']:.0f} % visible")
+    return "\n".join(lines)
+
+
 def loop_occupancy_vs_counts(counts: dict, loop_events: list[dict], fps: float | None = None) -> list[dict]:
     """Per lane: the results' loop occupancy over the hand count's occupancy frame range, next to the
     hand-count file's (mask-based) value."""
@@ -256,14 +306,14 @@ def loop_occupancy_vs_counts(counts: dict, loop_events: list[dict], fps: float |
     return rows
 
 
-def format_count_report(cmp: CountComparison) -> str:
-    lines = [f"  {'lane':>4} {'hand':>5} {'result':>6} {'matched':>7} {'missed':>6} {'extra':>5} {'diff':>5}"]
+def format_count_report(cmp: CountComparison, lists: bool = True, ref: str = "hand") -> str:
+    lines = [f"  {'lane':>4} {ref:>5} {'result':>6} {'matched':>7} {'missed':>6} {'extra':>5} {'diff':>5}"]
     for lane, d in sorted(cmp.per_lane.items()):
         lines.append(f"  {lane:>4} {d['hand']:>5} {d['result']:>6} {d['matched']:>7} {d['missed']:>6} {d['extra']:>5} "
                      f"{d['result'] - d['hand']:>+5d}")
-    if cmp.missed:
+    if cmp.missed and lists:
         lines.append("missed (hand frame, lane): " + ", ".join(f"{c['frame']}/{c['lane']}" for c in cmp.missed))
-    if cmp.extra:
+    if cmp.extra and lists:
         lines.append("extra (result frame, lane): " + ", ".join(f"{c['frame']}/{c['lane']}" for c in cmp.extra))
     return "\n".join(lines)
 
@@ -280,6 +330,8 @@ def format_count_report(cmp: CountComparison) -> str:
               help="hand-count file (counts.json)")
 @click.option("--tolerance", type=int, default=4, show_default=True, help="frames for a hand-count match")
 @click.option("--complete-only", is_flag=True, help="ignore partial periods")
+@click.option("--crossings", "list_crossings", is_flag=True,
+              help="truth: match count-line crossings (same lane, within 1 s) and list the extra and missed ones")
 @click.option("--frames", "frame_range", default=None, metavar="FIRST:LAST",
               help="hand counts: compare only crossings in this frame range (e.g. a partial replay)")
 @click.option("--plot", "plot_png", type=click.Path(dir_okay=False), default=None, help="scatter plot PNG (Fig. 7)")
@@ -287,7 +339,7 @@ def format_count_report(cmp: CountComparison) -> str:
 @click.option("--time-space", "ts_png", type=click.Path(dir_okay=False), default=None,
               help="time-space diagram PNG (Fig. 6)")
 def evaluate(results_path: str, truth_dir: str | None, counts_path: str | None, tolerance: int, complete_only: bool,
-             frame_range: str | None, plot_png: str | None, errors_png: str | None, ts_png: str | None) -> None:
+             list_crossings: bool, frame_range: str | None, plot_png: str | None, errors_png: str | None, ts_png: str | None) -> None:
     """Compare replay results with simulator truth (--truth) or a hand count (--counts)."""
     if (truth_dir is None) == (counts_path is None):
         raise click.UsageError("give exactly one of --truth DIR or --counts counts.json")
@@ -300,6 +352,13 @@ def evaluate(results_path: str, truth_dir: str | None, counts_path: str | None, 
                 raise EvaluateError(f"{results_path}: no period matches the truth's lanes and period starts "
                                     f"(was the replay --start the simulator's start time?)")
             click.echo(format_truth_report(cmp))
+            if list_crossings:
+                if not results["crossings"]:
+                    raise EvaluateError(f"{results_path}: holds no count-line crossings (write it with roadwatch replay)")
+                xc = compare_crossings_with_truth(truth, results["crossings"])
+                click.echo("\nCount-line crossings vs the truth's (match = same lane within 1 s):")
+                click.echo(format_count_report(xc, lists=False, ref="truth"))
+                click.echo(format_crossing_lists(xc))
             from tools import plots
 
             if plot_png:
