@@ -196,13 +196,14 @@ class CountComparison:
 
 def compare_with_counts(counts: dict, crossings: list[dict], tolerance_frames: int = 4,
                         fps: float | None = None, frame_range: tuple[int, int] | None = None) -> CountComparison:
-    """Match result crossings with hand-counted ones: same lane, frames within the tolerance."""
+    """Match result crossings with hand-counted ones: same lane, frames within the tolerance. A result
+    crossing's frame is its time t x fps where it has one."""
     fps = fps or float(counts.get("fps", 25.0))
     hand = [dict(c) for c in counts["crossings"]]
     res = []
     for c in crossings:
         c = dict(c)
-        if c.get("frame") is None:
+        if c.get("t") is not None:  # the frame it crossed in ("frame" is where it was seen: a report is held)
             c["frame"] = int(round(float(c["t"]) * fps))
         res.append(c)
     if frame_range is not None:
