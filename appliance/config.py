@@ -55,6 +55,9 @@ class SourceConfig:
     reconnect_max_s: float = 30.0
     loop: bool = False  # files: start again at the end (demos)
     realtime: bool = True  # files: pace at the capture rate instead of as fast as possible
+    # interlaced camera (analogue through an encoder): each frame's two fields were taken half a frame
+    # apart; track on the top field alone, its lines doubled (moving edges would otherwise be combed)
+    deinterlace: bool = False
 
 
 @dataclass

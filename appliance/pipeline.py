@@ -49,12 +49,26 @@ ALIGN_MIN_PX = 0.5  # camera shifts between frames below this leave the previous
 # it would only blur it; a still camera's stabiliser jitters by a few hundredths of a pixel)
 
 
+def top_field(img: np.ndarray) -> np.ndarray:
+    """An interlaced frame's top field (its even lines, all taken at the frame's time) at full height: each
+    odd line the mean of the field lines above and below it (the last line, with none below, a copy)."""
+    out = np.empty_like(img)
+    f = img[0::2]
+    k = len(f) - 1  # odd lines with a field line on both sides
+    out[0::2] = f
+    out[1:2 * k:2] = cv2.addWeighted(f[:k], 0.5, f[1:], 0.5, 0.0)
+    if img.shape[0] % 2 == 0:
+        out[-1] = f[-1]
+    return out
+
+
 class VisionPipeline:
     """Stages in order; each holds its own state. ``stats`` has live numbers, ``timings`` seconds per stage."""
 
     def __init__(self, site: SiteConfig) -> None:
         self.site = site
         self.width, self.height = int(site.source.width), int(site.source.height)
+        self.deinterlace = bool(site.source.deinterlace)
         self.zones = SiteZones(site)
         H = site.homography
         p = site.tracking
@@ -126,7 +140,7 @@ class VisionPipeline:
             )
         if img.dtype != np.uint8:
             raise ValueError(f"frame {frame.seq}: image dtype {img.dtype}, expected uint8")
-        return np.ascontiguousarray(img)
+        return top_field(img) if self.deinterlace else np.ascontiguousarray(img)
 
     def step(self, frame: Frame) -> list[VehicleState]:
         img = self._check_frame(frame)

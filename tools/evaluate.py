@@ -236,20 +236,21 @@ def compare_with_counts(counts: dict, crossings: list[dict], tolerance_frames: i
 
 def truth_crossings(vehicles_path: str | Path, lines: dict[int, float]) -> list[dict]:
     """The simulator's crossings of each lane's count line (lane -> Y in metres): when a vehicle's front
-    passes it while in that lane, with its class and visible share then."""
-    tracks: dict[str, list[tuple[float, int, float, str, float]]] = {}
+    passes it while in that lane, with its class, visible share and speed then."""
+    tracks: dict[str, list[tuple[float, int, float, str, float, float]]] = {}
     with open(vehicles_path, newline="") as f:
         for r in csv.DictReader(f):
             tracks.setdefault(r["vehicle_id"], []).append(
-                (float(r["t"]), int(r["lane"]), float(r["y_front_m"]), r["class"], float(r["visible_frac"])))
+                (float(r["t"]), int(r["lane"]), float(r["y_front_m"]), r["class"], float(r["visible_frac"]),
+                 float(r["speed_mps"])))
     out = []
     for vid, rows in tracks.items():
         rows.sort()
-        for (t0, lane, y0, cls, vis), (t1, _, y1, _, _) in zip(rows, rows[1:]):
+        for (t0, lane, y0, cls, vis, v), (t1, _, y1, _, _, _) in zip(rows, rows[1:]):
             y = lines.get(lane)
             if y is not None and y1 != y and (y0 - y) * (y1 - y) <= 0:  # a sample on the line: the next pair
                 out.append({"lane": lane, "t": t0 + (y - y0) / (y1 - y0) * (t1 - t0), "vehicle_id": vid,
-                            "class": cls, "visible": vis})
+                            "class": cls, "visible": vis, "speed_kmh": 3.6 * v})
     return sorted(out, key=lambda c: c["t"])
 
 

@@ -47,6 +47,8 @@ def _preset_help() -> str:
 @click.option("--repeat-frames", type=click.IntRange(1, 4), default=None, help="Write each frame N times (15 fps padded to 30 = 2).")
 @click.option("--drop-frames", type=click.FloatRange(0, 0.5), default=None, help="Probability of dropping a frame.")
 @click.option("--jitter-ms", type=click.FloatRange(min=0), default=None, help="Capture timestamp jitter (ms, s.d.).")
+@click.option("--interlace", is_flag=True, default=None,
+              help="Interlaced frames: odd lines taken half a frame after even lines (site gets deinterlace).")
 @click.option("--crf", type=click.IntRange(0, 51), default=None, help="H.264 quality (higher = more compression).")
 @click.option("--png-every", type=click.FloatRange(min=0), default=0.0, metavar="SECONDS",
               help="Also save a PNG frame every SECONDS to OUT/frames/ (0 = none).")
@@ -54,8 +56,8 @@ def _preset_help() -> str:
 def simulate(preset: str, seed: int, seconds: float, out: Path, width: int, height: int, fps: float, lanes: int | None,
              receding_lanes: int | None, curve_radius: float | None, demand: float | None, demand_profile: str | None,
              cam_height: float | None, tilt: float | None, pan: float | None, focal: float | None,
-             repeat_frames: int | None, drop_frames: float | None, jitter_ms: float | None, crf: int | None,
-             png_every: float, quiet: bool) -> None:
+             repeat_frames: int | None, drop_frames: float | None, jitter_ms: float | None, interlace: bool | None,
+             crf: int | None, png_every: float, quiet: bool) -> None:
     from tools.simulate.scenario import render_scenario
 
     profile = None
@@ -71,7 +73,8 @@ def simulate(preset: str, seed: int, seconds: float, out: Path, width: int, heig
     overrides = dict(lanes_approaching=lanes, lanes_receding=receding_lanes, curve_radius_m=curve_radius,
                      demand_vph=demand, cam_height_m=cam_height, cam_tilt_deg=tilt, cam_pan_deg=pan, focal_scale=focal,
                      repeat_frames=repeat_frames,
-                     drop_prob=drop_frames, jitter_ms=jitter_ms, demand_profile=profile, video_crf=crf)
+                     drop_prob=drop_frames, jitter_ms=jitter_ms, interlaced=interlace or None, demand_profile=profile,
+                     video_crf=crf)
     t0 = time.perf_counter()
     try:
         res = render_scenario(preset, seed, seconds, out, width=width, height=height, fps=fps,

@@ -57,6 +57,7 @@ class SceneParams:
     repeat_frames: int = 1  # each rendered frame written this many times (15 fps padded to 30 fps = 2)
     drop_prob: float = 0.0
     jitter_ms: float = 0.0
+    interlaced: bool = False  # each frame's odd lines (its bottom field) taken half a frame after its even lines
 
 
 PRESETS: dict[str, str] = {

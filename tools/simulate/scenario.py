@@ -99,6 +99,8 @@ def render_scenario(preset: str, seed: int, seconds: float, out_dir: Path, *, wi
 
     site = scene.site_dict("video.mp4")
     site["source"]["realtime"] = False
+    if p.interlaced:
+        site["source"]["deinterlace"] = True
     site_path = out_dir / "site.toml"
     site_path.write_text(site_toml(site))
 
@@ -126,6 +128,12 @@ def render_scenario(preset: str, seed: int, seconds: float, out_dir: Path, *, wi
                     bar.update(1)
                 continue
             img, rows = scene.render()
+            if p.interlaced:  # the bottom field, half a frame later (the truth is the top field's time)
+                half = 0.5 / content_fps
+                scene.step(half)
+                t_prev = float(t) + half
+                img = img.copy()
+                img[1::2] = scene.render(want_truth=False)[0][1::2]
             frame = writer.n
             if png_every_s > 0 and t >= next_png:
                 (out_dir / "frames").mkdir(exist_ok=True)
@@ -157,7 +165,7 @@ def render_scenario(preset: str, seed: int, seconds: float, out_dir: Path, *, wi
         preset=preset, seed=int(seed), fps=float(fps), width=width, height=height, seconds=float(seconds),
         frame_count=writer.n, start_wall=scene.truth.start_wall, period_s=scene.truth.period_s,
         defects=dict(repeat_frames=p.repeat_frames, drop_prob=p.drop_prob, jitter_ms=p.jitter_ms,
-                     dropped_frames=int(dropped.sum())),
+                     dropped_frames=int(dropped.sum()), interlaced=p.interlaced),
         camera=dict(height_m=scene.cam.height_m, tilt_deg=scene.cam.tilt_deg, pan_deg=scene.cam.pan_deg,
                     focal_px=scene.cam.focal_px, x_m=scene.cam.x_m),
         conditions={k: getattr(p, k) for k in ("night", "dusk", "rain", "overcast", "shadows", "shake_px",
