@@ -378,6 +378,7 @@ class TrafficMeasures:
             if ev is not None:
                 out.loop_events.append(ev)
         length = float(np.median(tr.lengths))
+        self._settle_length(v.id, tr.counted, length)
         dur = v.t - tr.first_t
         speed = float(np.median(tr.speeds)) * 3.6
         lane = tr.counted_lane if tr.counted_lane is not None else tr.history.lane
@@ -387,6 +388,15 @@ class TrafficMeasures:
             lane_changes=tr.history.changes, trajectory=tr.trajectory if self.keep_trajectories else None,
         ))
         return carry
+
+    def _settle_length(self, vid: int, lanes: set, length: float) -> None:
+        """A finished vehicle's crossings not yet aggregated take its length over its whole passage (the
+        period's length classes): at the count line it was still being measured (fewer frames fitted)."""
+        for lane in lanes:
+            for c in reversed(self.crossings.get(lane, [])):
+                if c.vehicle_id == vid:
+                    c.length_m = length
+                    break
 
     # ------------------------------------------------------------------ periods
 

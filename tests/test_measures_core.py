@@ -498,3 +498,33 @@ def test_a_segment_in_a_period_already_taken_is_not_added():
             np.array([10.0, 90.0]))
     assert set(acc.sums) == {60.0}
     assert acc.peek(60.0)[:, 0] == pytest.approx([40.0, 10.0])
+
+
+def test_period_length_classes_use_the_length_over_the_whole_passage():
+    """A vehicle's length is still being measured when its front crosses the count line (few frames fitted):
+    the period's length classes take the length over its whole passage, as its vehicle record does."""
+    lanes = [{"id": 1, "direction": "approaching", "polygon_m": [[-5, 0], [5, 0], [5, 100], [-5, 100]],
+              "region_y_m": [20.0, 80.0], "count_y_m": 70.0}]
+    site = make_site(period_s=60, loops=[], lanes=lanes)
+    tm = TrafficMeasures(site)
+    periods, records, crossings = [], [], []
+    fps, speed, n, every, life = 10.0, 20.0, 12, 60, 53  # frames: a vehicle each 6 s, in view from y=100 to -4
+    for i in range(130 * int(fps) + 1):
+        t = i / fps
+        vs = []
+        for j in range(n):
+            age = i - j * every
+            if not 0 <= age < life:
+                continue
+            yf = 100.0 - speed * age / fps
+            length = 1.5 if yf > 65.0 else 4.5  # a motorcycle's length at the line, a car's from then on
+            vs.append(VehicleState(j + 1, t, 0.0, yf, yf + length, 0.0, -speed, length, 5, finished=age == life - 1))
+        upd = tm.step(t, EPOCH + t, vs)
+        periods += upd.periods
+        records += upd.vehicles
+        crossings += [c.length_m for c in upd.crossings]  # as sent out (and stored) at the line
+    assert len(crossings) == n and all(length == pytest.approx(1.5) for length in crossings)
+    assert len(records) == n and all(r.length_class == "small" for r in records)
+    counted = [p for p in periods if p.lane == 1 and p.count]
+    assert sum(p.count for p in counted) == n
+    assert all(p.class_counts == {"small": p.count} for p in counted)
