@@ -66,6 +66,7 @@ class _Track:
     lengths: list[float] = field(default_factory=list)
     counted_lane: int | None = None  # lane of its first count-line crossing
     counted: set = field(default_factory=set)  # lanes whose count line it crossed (staggered lines)
+    crossed: list[Crossing] = field(default_factory=list)  # its crossings counted (not yet aggregated)
     trajectory: list[tuple[float, float, float]] = field(default_factory=list)
     # its latest Edie segments (lane, w0, w1, y0, y1), to take back
     segs: deque[tuple] = field(default_factory=lambda: deque(maxlen=MAX_EDIE_SEGMENTS))
@@ -292,6 +293,7 @@ class TrafficMeasures:
             tr.counted_lane = lane_c
         cr = Crossing(v.id, lane_c, tc, tc + offset, speed_kmh, v.length, self.count_y[lane_c])
         self.crossings[lane_c].append(cr)
+        tr.crossed.append(cr)
         out.crossings.append(cr)
 
     def _duplicate(self, vid: int, tr: _Track, other_id: int) -> None:
@@ -378,7 +380,10 @@ class TrafficMeasures:
             if ev is not None:
                 out.loop_events.append(ev)
         length = float(np.median(tr.lengths))
-        self._settle_length(v.id, tr.counted, length)
+        # the period's length classes take its length over its whole passage: at the count line it was still
+        # being measured (fewer frames fitted)
+        for c in tr.crossed:
+            c.length_m = length
         dur = v.t - tr.first_t
         speed = float(np.median(tr.speeds)) * 3.6
         lane = tr.counted_lane if tr.counted_lane is not None else tr.history.lane
@@ -388,15 +393,6 @@ class TrafficMeasures:
             lane_changes=tr.history.changes, trajectory=tr.trajectory if self.keep_trajectories else None,
         ))
         return carry
-
-    def _settle_length(self, vid: int, lanes: set, length: float) -> None:
-        """A finished vehicle's crossings not yet aggregated take its length over its whole passage (the
-        period's length classes): at the count line it was still being measured (fewer frames fitted)."""
-        for lane in lanes:
-            for c in reversed(self.crossings.get(lane, [])):
-                if c.vehicle_id == vid:
-                    c.length_m = length
-                    break
 
     # ------------------------------------------------------------------ periods
 

@@ -341,7 +341,8 @@ def format_count_report(cmp: CountComparison, lists: bool = True, ref: str = "ha
 @click.option("--time-space", "ts_png", type=click.Path(dir_okay=False), default=None,
               help="time-space diagram PNG (Fig. 6)")
 def evaluate(results_path: str, truth_dir: str | None, counts_path: str | None, tolerance: int, complete_only: bool,
-             list_crossings: bool, frame_range: str | None, plot_png: str | None, errors_png: str | None, ts_png: str | None) -> None:
+             list_crossings: bool, frame_range: str | None, plot_png: str | None, errors_png: str | None,
+             ts_png: str | None) -> None:
     """Compare replay results with simulator truth (--truth) or a hand count (--counts)."""
     if (truth_dir is None) == (counts_path is None):
         raise click.UsageError("give exactly one of --truth DIR or --counts counts.json")
@@ -356,7 +357,8 @@ def evaluate(results_path: str, truth_dir: str | None, counts_path: str | None, 
             click.echo(format_truth_report(cmp))
             if list_crossings:
                 if not results["crossings"]:
-                    raise EvaluateError(f"{results_path}: holds no count-line crossings (write it with roadwatch replay)")
+                    raise EvaluateError(
+                        f"{results_path}: holds no count-line crossings (write it with roadwatch replay)")
                 xc = compare_crossings_with_truth(truth, results["crossings"])
                 click.echo("\nCount-line crossings vs the truth's (match = same lane within 1 s):")
                 click.echo(format_count_report(xc, lists=False, ref="truth"))
