@@ -15,7 +15,7 @@ import numpy as np
 from appliance.background import Background
 from appliance.config import SiteConfig
 from appliance.corners import CornerDetector
-from appliance.grouping import RECHECK_S, SETTLED_AGE, Grouper
+from appliance.grouping import RECHECK_S, SETTLED_AGE, STILL_M, STILL_S, Grouper
 from appliance.stabilise import Stabiliser
 from appliance.tracker import FeatureTracker
 from appliance.types import Frame, VehicleState
@@ -33,6 +33,12 @@ LK_MARGIN_PX = 64  # crop margin around new corners for the initial-velocity flo
 STALE_GAP_S = 0.5  # a leading trajectory point this much older than the next one ...
 STALE_SPEED_SHARE = 0.5  # ... and reached at less than this share of the vehicle's speed is dropped
 BACKFILL_MIN_SPEED = 1.0  # m/s: slower vehicles are not extrapolated back to the region entry
+# A new vehicle's points up to a standstill (within STILL_M for STILL_S) are not its own when it could not
+# have got from standing there to where it is now at up to MAX_ACCEL_MPS2 (plus START_SLACK_MPS for jitter):
+# the group began on something static (an occluder's edge where vehicles emerge) that the vehicle's own
+# features joined as it passed. A queued vehicle moving off is slower than that.
+MAX_ACCEL_MPS2 = 5.0
+START_SLACK_MPS = 1.0
 BACKFILL_MIN_FEATURES = 4  # groups with fewer features when released are not extended (fragments)
 # A newly reported vehicle is held back this long (capture seconds) before its first report goes out, so
 # its speed is measured over its own points before its trajectory is extended back to the region entry,
@@ -255,15 +261,18 @@ class VisionPipeline:
         so its first points lie inside the region; it crossed the region's entry earlier. Assuming the
         speed it has now over that stretch, the entry point is prepended (never before the first frame),
         so Edie's d(A) and t(A) cover the whole region."""
-        traj = list(v.trajectory or [])
+        pts = list(v.trajectory or []) + [(v.t, v.x, v.y_front)]
+        own = _own_start(np.array([p[0] for p in pts]), np.array([p[2] for p in pts]))
+        pts = pts[own:]
         speed = max(abs(v.vy), self._group_speed(v.id))
-        if held and held[-1].t - held[0].t >= 0.5 * HOLD_S:
+        if own:  # moved off too fast from where it stood: its own speed is over what it did since
+            speed = max(speed, abs(pts[-1][2] - pts[0][2]) / (pts[-1][0] - pts[0][0]))
+        elif held and held[-1].t - held[0].t >= 0.5 * HOLD_S:
             # measured over the held points (elevated features' speeds are magnified), but never below the
             # near end's own: its points may have stood still a while when its lowest feature was lost
             speed = max(abs(held[-1].y_front - held[0].y_front) / (held[-1].t - held[0].t), abs(v.vy))
         # a group's first point may come from a static feature it was chained to before the vehicle
         # arrived: drop leading points from which the vehicle could not have come at anything like its speed
-        pts = traj + [(v.t, v.x, v.y_front)]
         while len(pts) >= 2 and pts[1][0] - pts[0][0] > STALE_GAP_S \
                 and abs(pts[1][2] - pts[0][2]) < STALE_SPEED_SHARE * speed * (pts[1][0] - pts[0][0]):
             pts.pop(0)
@@ -392,6 +401,21 @@ def _colour(vid: int) -> tuple[int, int, int]:
     hsv = np.uint8([[[h, 220, 255]]])
     b, g, r = cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR)[0, 0]
     return int(b), int(g), int(r)
+
+
+def _own_start(t: np.ndarray, y: np.ndarray) -> int:
+    """Index of a new vehicle's first own trajectory point (times t, near end y): the end of the last
+    standstill from which it could not have moved off to its last point (see MAX_ACCEL_MPS2), else 0."""
+    j = len(t) - 2
+    while j > 0:
+        run = t[-1] - t[j]
+        k = j
+        while k > 0 and abs(y[k - 1] - y[j]) <= STILL_M:
+            k -= 1
+        if t[j] - t[k] >= STILL_S and abs(y[-1] - y[j]) > (0.5 * MAX_ACCEL_MPS2 * run + START_SLACK_MPS) * run:
+            return j
+        j = k - 1 if k < j else j - 1
+    return 0
 
 
 def _released(held: list[VehicleState]) -> VehicleState:

@@ -286,14 +286,15 @@ def test_vehicle_emerging_from_occlusion_is_backfilled_to_the_region_entry(site)
 
 
 def test_backfill_rules():
-    """Unit rules: clipped at the first frame; stale leading points dropped; never across the count line."""
+    """Unit rules: clipped at the first frame; stale leading points and a standstill the vehicle could not have
+    moved off from dropped; never across the count line."""
     from appliance.types import VehicleState
 
     pipe = VisionPipeline(parse_site(site_dict()))
     pipe.first_t = 0.0
 
-    def state(traj, t=1.5, y=40.0, n=6):
-        return VehicleState(id=1, t=t, x=-1.75, y_front=y, y_rear=y + 4.5, vx=0.0, vy=-20.0, length=4.5,
+    def state(traj, t=1.5, y=40.0, n=6, vy=-20.0):
+        return VehicleState(id=1, t=t, x=-1.75, y_front=y, y_rear=y + 4.5, vx=0.0, vy=vy, length=4.5,
                             n_features=n, trajectory=list(traj))
 
     v = state([(1.0, -1.75, 50.0)])
@@ -310,6 +311,21 @@ def test_backfill_rules():
     v = state([(1.0, -1.75, 50.0)], n=2)  # a fragment
     pipe._backfill(v)
     assert v.trajectory == [(1.0, -1.75, 50.0)]
+    # a group that stood still on an occluder's edge (1-4 s) until a vehicle at 20 m/s took it along: the
+    # vehicle could not have moved off from there that fast; its trajectory starts where it left, and its
+    # entry lies at its speed since (its near end's velocity still leans on the standing features) before that
+    traj = [(1.0 + 0.04 * k, -1.75, 52.0 - min(0.04 * k, 0.2)) for k in range(76)]
+    traj += [(4.04 + 0.04 * k, -1.75, 51.8 - 0.8 * (k + 1)) for k in range(12)]
+    v = state(traj, t=4.52, y=41.4, n=6, vy=-1.5)
+    pipe._backfill(v)
+    assert v.trajectory[1][0] == pytest.approx(4.0)
+    assert v.trajectory[0] == pytest.approx((4.0 - 23.2 / 20.0, -1.75, 75.0))
+    # a queued vehicle moving off at 2 m/s2 after standing 3 s keeps its standstill
+    traj = [(1.0 + 0.04 * k, -1.75, 52.0) for k in range(76)]
+    traj += [(4.04 + 0.04 * k, -1.75, 52.0 - (0.04 * (k + 1)) ** 2) for k in range(50)]
+    v = state(traj, t=6.04, y=52.0 - 2.04 ** 2, n=6)
+    pipe._backfill(v)
+    assert v.trajectory[1][0] == pytest.approx(1.0)
 
 
 def test_stabilise_model_other_than_translation_is_refused():
