@@ -34,11 +34,11 @@ STALE_GAP_S = 0.5  # a leading trajectory point this much older than the next on
 STALE_SPEED_SHARE = 0.5  # ... and reached at less than this share of the vehicle's speed is dropped
 BACKFILL_MIN_SPEED = 1.0  # m/s: slower vehicles are not extrapolated back to the region entry
 # A new vehicle's points up to a standstill (within STILL_M for STILL_S) are not its own when it could not
-# have got from standing there to where it is now at up to MAX_ACCEL_MPS2 (plus START_SLACK_MPS for jitter):
-# the group began on something static (an occluder's edge where vehicles emerge) that the vehicle's own
-# features joined as it passed. A queued vehicle moving off is slower than that.
+# have got from standing there to where it is now at up to MAX_ACCEL_MPS2, plus START_SLACK_MPS (the
+# standstill's tolerance lets it end with the vehicle already creeping off): the group began on something
+# static (an occluder's edge where vehicles emerge) that the vehicle's own features joined as it passed.
 MAX_ACCEL_MPS2 = 5.0
-START_SLACK_MPS = 1.0
+START_SLACK_MPS = 3.0
 BACKFILL_MIN_FEATURES = 4  # groups with fewer features when released are not extended (fragments)
 # A newly reported vehicle is held back this long (capture seconds) before its first report goes out, so
 # its speed is measured over its own points before its trajectory is extended back to the region entry,
@@ -412,7 +412,8 @@ def _own_start(t: np.ndarray, y: np.ndarray) -> int:
         k = j
         while k > 0 and abs(y[k - 1] - y[j]) <= STILL_M:
             k -= 1
-        if t[j] - t[k] >= STILL_S and abs(y[-1] - y[j]) > (0.5 * MAX_ACCEL_MPS2 * run + START_SLACK_MPS) * run:
+        moved = abs(y[-1] - y[j])
+        if t[j] - t[k] >= STILL_S and moved > STILL_M and moved > (0.5 * MAX_ACCEL_MPS2 * run + START_SLACK_MPS) * run:
             return j
         j = k - 1 if k < j else j - 1
     return 0

@@ -326,6 +326,11 @@ def test_backfill_rules():
     v = state(traj, t=6.04, y=52.0 - 2.04 ** 2, n=6)
     pipe._backfill(v)
     assert v.trajectory[1][0] == pytest.approx(1.0)
+    # one reported two frames into creeping off at 1.5 m/s after standing 10 s keeps its standstill too
+    traj = [(1.0 + 0.04 * k, -1.75, 48.3) for k in range(250)]
+    v = state(traj + [(11.04, -1.75, 48.24)], t=11.08, y=48.18, n=6, vy=-1.5)
+    pipe._backfill(v)
+    assert v.trajectory[1][0] == pytest.approx(1.0)
 
 
 def test_stabilise_model_other_than_translation_is_refused():
