@@ -32,6 +32,7 @@ LK_LEVELS = 3
 LK_MARGIN_PX = 64  # crop margin around new corners for the initial-velocity flow (> motion per frame)
 STALE_GAP_S = 0.5  # a leading trajectory point this much older than the next one ...
 STALE_SPEED_SHARE = 0.5  # ... and reached at less than this share of the vehicle's speed is dropped
+STALL_SHARE = 0.7  # held points covered at less than this share of the near end's speed stood still a while
 BACKFILL_MIN_SPEED = 1.0  # m/s: slower vehicles are not extrapolated back to the region entry
 # A new vehicle's points up to a standstill (within STILL_M for STILL_S) are not its own when it could not
 # have got from standing there to where it is now at up to MAX_ACCEL_MPS2, plus START_SLACK_MPS (the
@@ -268,9 +269,10 @@ class VisionPipeline:
         if own:  # moved off too fast from where it stood: its own speed is over what it did since
             speed = max(speed, abs(pts[-1][2] - pts[0][2]) / (pts[-1][0] - pts[0][0]))
         elif held and held[-1].t - held[0].t >= 0.5 * HOLD_S:
-            # measured over the held points (elevated features' speeds are magnified), but never below the
+            # measured over the held points (elevated features' speeds are magnified), unless far below the
             # near end's own: its points may have stood still a while when its lowest feature was lost
-            speed = max(abs(held[-1].y_front - held[0].y_front) / (held[-1].t - held[0].t), abs(v.vy))
+            rate = abs(held[-1].y_front - held[0].y_front) / (held[-1].t - held[0].t)
+            speed = rate if rate >= STALL_SHARE * abs(v.vy) else abs(v.vy)
         # a group's first point may come from a static feature it was chained to before the vehicle
         # arrived: drop leading points from which the vehicle could not have come at anything like its speed
         while len(pts) >= 2 and pts[1][0] - pts[0][0] > STALE_GAP_S \

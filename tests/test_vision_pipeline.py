@@ -331,6 +331,15 @@ def test_backfill_rules():
     v = state(traj + [(11.04, -1.75, 48.24)], t=11.08, y=48.18, n=6, vy=-1.5)
     pipe._backfill(v)
     assert v.trajectory[1][0] == pytest.approx(1.0)
+    # the entry lies at the speed over its held points (0.5 s) when they agree with its near end's velocity
+    # (here 10 against 11 m/s: the larger of two noisy speeds would read high); far below it, its near end
+    # stood still a while and the velocity is taken
+    pipe.first_t = -5.0
+    for rate, vy, speed in ((10.0, -11.0, 10.0), (2.0, -10.0, 10.0)):
+        held = [state([], t=1.0 + 0.04 * k, y=60.0 - rate * 0.04 * k, vy=vy) for k in range(13)]
+        v = state([(h.t, -1.75, h.y_front) for h in held[:-1]], t=held[-1].t, y=held[-1].y_front, vy=vy)
+        pipe._backfill(v, held)
+        assert v.trajectory[0] == pytest.approx((1.0 - 15.0 / speed, -1.75, 75.0))
 
 
 def test_stabilise_model_other_than_translation_is_refused():
