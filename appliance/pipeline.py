@@ -261,13 +261,16 @@ class VisionPipeline:
         Far away (small in the image) a vehicle is tracked only once it is big enough to hold features,
         so its first points lie inside the region; it crossed the region's entry earlier. Assuming the
         speed it has now over that stretch, the entry point is prepended (never before the first frame),
-        so Edie's d(A) and t(A) cover the whole region."""
+        so Edie's d(A) and t(A) cover the whole region. Its points up to a standstill it could not have
+        moved off from (see _own_start) are dropped first: they were something static it passed."""
         pts = list(v.trajectory or []) + [(v.t, v.x, v.y_front)]
         own = _own_start(np.array([p[0] for p in pts]), np.array([p[2] for p in pts]))
         pts = pts[own:]
         speed = max(abs(v.vy), self._group_speed(v.id))
-        if own:  # moved off too fast from where it stood: its own speed is over what it did since
-            speed = max(speed, abs(pts[-1][2] - pts[0][2]) / (pts[-1][0] - pts[0][0]))
+        vy = v.vy
+        if own:  # its velocity still leans on the standing features: its own speed is over what it did since
+            vy = (pts[-1][2] - pts[0][2]) / (pts[-1][0] - pts[0][0])
+            speed = abs(vy)
         elif held and held[-1].t - held[0].t >= 0.5 * HOLD_S:
             # measured over the held points (elevated features' speeds are magnified), unless far below the
             # near end's own: its points may have stood still a while when its lowest feature was lost
@@ -284,7 +287,7 @@ class VisionPipeline:
         lz = self.zones.lane_at_road(v.x, v.y_front) or self.zones.lane_at_road(x0, y0)
         if v.n_features < BACKFILL_MIN_FEATURES:
             return  # a few features only: likely a fragment of another vehicle, not extended
-        if lz is None or v.vy * lz.sign < BACKFILL_MIN_SPEED or speed < BACKFILL_MIN_SPEED or self.first_t is None:
+        if lz is None or vy * lz.sign < BACKFILL_MIN_SPEED or speed < BACKFILL_MIN_SPEED or self.first_t is None:
             return
         entry = lz.region_y[1] if lz.sign < 0 else lz.region_y[0]
         gap = (y0 - entry) * lz.sign  # metres between the entry and the first point, along travel
@@ -406,19 +409,22 @@ def _colour(vid: int) -> tuple[int, int, int]:
 
 
 def _own_start(t: np.ndarray, y: np.ndarray) -> int:
-    """Index of a new vehicle's first own trajectory point (times t, near end y): the end of the last
-    standstill from which it could not have moved off to its last point (see MAX_ACCEL_MPS2), else 0."""
-    j = len(t) - 2
-    while j > 0:
-        run = t[-1] - t[j]
-        k = j
-        while k > 0 and abs(y[k - 1] - y[j]) <= STILL_M:
-            k -= 1
-        moved = abs(y[-1] - y[j])
-        if t[j] - t[k] >= STILL_S and moved > STILL_M and moved > (0.5 * MAX_ACCEL_MPS2 * run + START_SLACK_MPS) * run:
-            return j
-        j = k - 1 if k < j else j - 1
-    return 0
+    """Index of a new vehicle's first own trajectory point (times t, near end y): the last point j that ends
+    a standstill (the points before it within STILL_M of it for STILL_S) from which the vehicle could not
+    have moved off to its last point (see MAX_ACCEL_MPS2), else 0."""
+    n = len(t)
+    if n < 3:
+        return 0
+    far = np.abs(y[:, None] - y[None, :]) > STILL_M  # far[i, j]: point i lies outside point j's standstill
+    far[np.tril_indices(n)] = False  # only earlier points i < j count
+    last_far = np.where(far.any(axis=0), n - 1 - np.argmax(far[::-1], axis=0), -1)
+    j = np.arange(1, n - 1)
+    still_from = last_far[j] + 1  # first point of each j's standstill
+    run = t[-1] - t[j]
+    moved = np.abs(y[-1] - y[j])
+    ok = (t[j] - t[still_from] >= STILL_S) & (moved > STILL_M) \
+        & (moved > (0.5 * MAX_ACCEL_MPS2 * run + START_SLACK_MPS) * run)
+    return int(j[ok][-1]) if ok.any() else 0
 
 
 def _released(held: list[VehicleState]) -> VehicleState:

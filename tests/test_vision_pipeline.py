@@ -331,11 +331,26 @@ def test_backfill_rules():
     v = state(traj + [(11.04, -1.75, 48.24)], t=11.08, y=48.18, n=6, vy=-1.5)
     pipe._backfill(v)
     assert v.trajectory[1][0] == pytest.approx(1.0)
+    # ... and so does one 0.4 s into moving off at 3 m/s (a standstill ends with the vehicle already creeping),
+    # and one whose near end jumps 0.3 m in a frame after standing (a step within the standstill's tolerance)
+    for tail in ([(11.0 + 0.04 * k, -1.75, 48.3 - 0.12 * k) for k in range(1, 10)], [(11.04, -1.75, 48.0)]):
+        v = state(traj + tail[:-1], t=tail[-1][0], y=tail[-1][2], n=6, vy=-1.5)
+        pipe._backfill(v)
+        assert v.trajectory[1][0] == pytest.approx(1.0)
+    # a standstill drifting 0.5 m (within its tolerance) before the group is dragged off at 8 m/s is found
+    # although an earlier point's standstill does not reach as far back; the entry lies at 8 m/s before it
+    # however little its velocity has caught up (here +0.3 m/s, the wrong way)
+    traj = [(1.0 + 0.04 * k, -1.75, 50.0 - 0.5 * k / 13) for k in range(14)]
+    traj += [(1.52 + 0.04 * k, -1.75, 49.5 - 0.32 * k) for k in range(1, 20)]
+    v = state(traj, t=2.32, y=49.5 - 0.32 * 20, n=6, vy=0.3)
+    pipe._backfill(v)
+    assert v.trajectory[1][0] == pytest.approx(1.52)
+    assert v.trajectory[0] == pytest.approx((1.52 - 25.5 / 8.0, -1.75, 75.0))
     # the entry lies at the speed over its held points (0.5 s) when they agree with its near end's velocity
     # (here 10 against 11 m/s: the larger of two noisy speeds would read high); far below it, its near end
     # stood still a while and the velocity is taken
     pipe.first_t = -5.0
-    for rate, vy, speed in ((10.0, -11.0, 10.0), (2.0, -10.0, 10.0)):
+    for rate, vy, speed in ((10.0, -11.0, 10.0), (8.0, -10.0, 8.0), (5.0, -10.0, 10.0)):
         held = [state([], t=1.0 + 0.04 * k, y=60.0 - rate * 0.04 * k, vy=vy) for k in range(13)]
         v = state([(h.t, -1.75, h.y_front) for h in held[:-1]], t=held[-1].t, y=held[-1].y_front, vy=vy)
         pipe._backfill(v, held)
