@@ -40,6 +40,7 @@ BACKFILL_MIN_SPEED = 1.0  # m/s: slower vehicles are not extrapolated back to th
 # static (an occluder's edge where vehicles emerge) that the vehicle's own features joined as it passed.
 MAX_ACCEL_MPS2 = 5.0
 START_SLACK_MPS = 3.0
+OWN_MAX_POINTS = 750  # only a new vehicle's last points are searched for a standstill (n x n comparison)
 BACKFILL_MIN_FEATURES = 4  # groups with fewer features when released are not extended (fragments)
 # A newly reported vehicle is held back this long (capture seconds) before its first report goes out, so
 # its speed is measured over its own points before its trajectory is extended back to the region entry,
@@ -412,6 +413,8 @@ def _own_start(t: np.ndarray, y: np.ndarray) -> int:
     """Index of a new vehicle's first own trajectory point (times t, near end y): the last point j that ends
     a standstill (the points before it within STILL_M of it for STILL_S) from which the vehicle could not
     have moved off to its last point (see MAX_ACCEL_MPS2), else 0."""
+    n0 = max(0, len(t) - OWN_MAX_POINTS)
+    t, y = t[n0:], y[n0:]
     n = len(t)
     if n < 3:
         return 0
@@ -424,7 +427,7 @@ def _own_start(t: np.ndarray, y: np.ndarray) -> int:
     moved = np.abs(y[-1] - y[j])
     ok = (t[j] - t[still_from] >= STILL_S) & (moved > STILL_M) \
         & (moved > (0.5 * MAX_ACCEL_MPS2 * run + START_SLACK_MPS) * run)
-    return int(j[ok][-1]) if ok.any() else 0
+    return n0 + int(j[ok][-1]) if ok.any() else 0
 
 
 def _released(held: list[VehicleState]) -> VehicleState:

@@ -346,6 +346,10 @@ def test_backfill_rules():
     pipe._backfill(v)
     assert v.trajectory[1][0] == pytest.approx(1.52)
     assert v.trajectory[0] == pytest.approx((1.52 - 25.5 / 8.0, -1.75, 75.0))
+    # a group that stood 79 s (more points than are searched) before it was dragged off starts where it left
+    from appliance.pipeline import _own_start
+    t = np.arange(2000) * 0.04
+    assert _own_start(t, np.r_[np.full(1980, 80.0), 80.0 - 0.8 * np.arange(1, 21)]) == 1979
     # the entry lies at the speed over its held points (0.5 s) when they agree with its near end's velocity
     # (here 10 against 11 m/s: the larger of two noisy speeds would read high); far below it, its near end
     # stood still a while and the velocity is taken
