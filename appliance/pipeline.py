@@ -267,7 +267,6 @@ class VisionPipeline:
         pts = list(v.trajectory or []) + [(v.t, v.x, v.y_front)]
         own = _own_start(np.array([p[0] for p in pts]), np.array([p[2] for p in pts]))
         pts = pts[own:]
-        speed = max(abs(v.vy), self._group_speed(v.id))
         vy = v.vy
         if own:  # its velocity still leans on the standing features: its own speed is over what it did since
             vy = (pts[-1][2] - pts[0][2]) / (pts[-1][0] - pts[0][0])
@@ -277,6 +276,8 @@ class VisionPipeline:
             # near end's own: its points may have stood still a while when its lowest feature was lost
             rate = abs(held[-1].y_front - held[0].y_front) / (held[-1].t - held[0].t)
             speed = rate if rate >= STALL_SHARE * abs(v.vy) else abs(v.vy)
+        else:
+            speed = max(abs(v.vy), self._group_speed(v.id))
         # a group's first point may come from a static feature it was chained to before the vehicle
         # arrived: drop leading points from which the vehicle could not have come at anything like its speed
         while len(pts) >= 2 and pts[1][0] - pts[0][0] > STALE_GAP_S \
