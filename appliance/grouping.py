@@ -18,7 +18,10 @@ from appliance.config import TrackingParams
 from appliance.types import VehicleState
 from appliance.zones import SiteZones
 
-UNSEEN, LINKED, APART, MERGED = 0, 1, 2, 3  # MERGED: a fragment joined to its vehicle for good
+UNSEEN, LINKED, APART = 0, 1, 2
+# a fragment joined to its vehicle for good: MERGED_LO when the pair's lower slot is the fragment's, MERGED_HI
+# when the higher one is
+MERGED_LO, MERGED_HI = 3, 4
 SETTLED_AGE = 5  # frames before a feature's speed counts
 # A feature's motion when a pair is first seen: STANDING below STANDING_MPS once settled (scenery, an
 # occluder's edge, a queued vehicle), MOVING above MOVING_MPS, else unsure (0)
@@ -197,35 +200,63 @@ def isolate(new, kept, live, owner, state):
 
 @njit(cache=True)
 def components(live, state, labels):
-    """Connected components of the LINKED graph over live slots; labels[slot] = smallest member slot."""
+    """Vehicles over the live slots: the connected components of the LINKED graph, each with fragment
+    features then joined to the one component it is most MERGED with as the fragment (never the other way
+    round). A fragment joined to a vehicle for good so never holds together two parts of that vehicle that
+    have since moved apart (two queued cars linked while crawling together, then the leader pulls away).
+    labels[slot] = the smallest slot of its vehicle."""
     n = live.shape[0]
     parent = np.arange(n)
+    merged = False
     for a in range(n):
         i = live[a]
         for b in range(a + 1, n):
             j = live[b]
-            if i < j:
-                st = state[i, j]
-            else:
-                st = state[j, i]
-            if st == LINKED or st == MERGED:
-                ra = a
-                while parent[ra] != ra:
-                    ra = parent[ra]
-                rb = b
-                while parent[rb] != rb:
-                    rb = parent[rb]
-                if ra != rb:
-                    if ra < rb:
-                        parent[rb] = ra
-                    else:
-                        parent[ra] = rb
+            st = state[i, j] if i < j else state[j, i]
+            if st == LINKED:
+                _union(parent, a, b)
+            elif st == MERGED_LO or st == MERGED_HI:
+                merged = True
     for a in range(n):
-        r = a
-        while parent[r] != r:
-            r = parent[r]
-        parent[a] = r
-        labels[live[a]] = live[r]
+        parent[a] = _root(parent, a)
+    if merged:
+        shared = np.zeros((n, n), np.int32)  # [fragment's component, host's component] -> MERGED pairs
+        for a in range(n):
+            i = live[a]
+            for b in range(a + 1, n):
+                j = live[b]
+                lo_a = i < j
+                st = state[i, j] if lo_a else state[j, i]
+                if (st == MERGED_LO or st == MERGED_HI) and parent[a] != parent[b]:
+                    if (st == MERGED_LO) == lo_a:  # a's feature is the fragment's
+                        shared[parent[a], parent[b]] += 1
+                    else:
+                        shared[parent[b], parent[a]] += 1
+        for c in range(n):
+            if parent[c] == c:
+                host = np.argmax(shared[c])
+                if shared[c, host] > 0:
+                    _union(parent, c, host)
+        for a in range(n):
+            parent[a] = _root(parent, a)
+    for a in range(n):
+        labels[live[a]] = live[parent[a]]
+
+
+@njit(cache=True)
+def _root(parent, a):
+    while parent[a] != a:
+        a = parent[a]
+    return a
+
+
+@njit(cache=True)
+def _union(parent, a, b):
+    ra, rb = _root(parent, a), _root(parent, b)
+    if ra < rb:
+        parent[rb] = ra
+    elif rb < ra:
+        parent[ra] = rb
 
 
 def motion_class(s: np.ndarray, age: np.ndarray) -> np.ndarray:
@@ -746,7 +777,8 @@ class Grouper:
 
     def _link(self, a: np.ndarray, b: np.ndarray) -> None:
         """Join features a to the vehicle of features b for good."""
-        self.state[np.minimum.outer(a, b), np.maximum.outer(a, b)] = MERGED  # pairs kept as (lower, higher) slot
+        self.state[np.minimum.outer(a, b), np.maximum.outer(a, b)] = np.where(  # pairs kept as (lower, higher)
+            np.less.outer(a, b), MERGED_LO, MERGED_HI)
 
     def _qualifies_on_loss(self, tr: VehicleTrack) -> bool:
         """A vehicle whose features were all lost still counts if it left the detection zone."""

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-UNSEEN, LINKED, APART, MERGED = 0, 1, 2, 3
+UNSEEN, LINKED, APART, MERGED_LO, MERGED_HI = 0, 1, 2, 3, 4
 STANDING, MOVING = 1, 2
 
 
@@ -128,27 +128,47 @@ def pair_update_ref(live, s, lane, motion, state, rng, y0, conn_x, conn_y, seg_x
 
 
 def components_ref(live, state) -> dict[int, int]:
-    """slot -> smallest slot of its LINKED component (breadth-first search)."""
+    """slot -> its vehicle's label: breadth-first LINKED components, each with fragment features then joined
+    to the component it is most MERGED with as the fragment (ties: the smallest slot); labelled by the
+    smallest slot of what they form."""
     live = sorted(int(x) for x in live)
-    adj = {i: [] for i in live}
+
+    def bfs(adj: dict[int, list[int]], nodes: list[int]) -> dict[int, int]:
+        label: dict[int, int] = {}
+        for i in nodes:
+            if i in label:
+                continue
+            comp, todo = [], [i]
+            while todo:
+                k = todo.pop()
+                if k not in label:
+                    label[k] = -1
+                    comp.append(k)
+                    todo.extend(adj[k])
+            for k in comp:
+                label[k] = min(comp)
+        return label
+
+    adj: dict[int, list[int]] = {i: [] for i in live}
     for a, i in enumerate(live):
         for j in live[a + 1 :]:
-            if state[i, j] in (LINKED, MERGED):
-                adj[i].append(j)
-                adj[j].append(i)
-    label: dict[int, int] = {}
-    for i in live:
-        if i in label:
-            continue
-        comp, todo = [], [i]
-        while todo:
-            k = todo.pop()
-            if k in label:
-                continue
-            label[k] = -1
-            comp.append(k)
-            todo.extend(adj[k])
-        m = min(comp)
-        for k in comp:
-            label[k] = m
-    return label
+            if state[i, j] == LINKED:
+                adj[i] += [j]
+                adj[j] += [i]
+    part = bfs(adj, live)
+    shared: dict[tuple[int, int], int] = {}
+    for a, i in enumerate(live):
+        for j in live[a + 1 :]:
+            if state[i, j] in (MERGED_LO, MERGED_HI) and part[i] != part[j]:
+                frag, host = (i, j) if state[i, j] == MERGED_LO else (j, i)
+                key = (part[frag], part[host])
+                shared[key] = shared.get(key, 0) + 1
+    joined: dict[int, list[int]] = {c: [] for c in set(part.values())}
+    for c in joined:
+        hosts = {h: k for (f, h), k in shared.items() if f == c}
+        if hosts:
+            h = min(hosts, key=lambda q: (-hosts[q], q))
+            joined[c] += [h]
+            joined[h] += [c]
+    top = bfs(joined, sorted(joined))
+    return {i: top[part[i]] for i in live}

@@ -317,3 +317,25 @@ def test_a_receding_vehicles_extent_starts_at_its_near_end():
     approaching = VehicleState(id=2, t=0.0, x=1.0, y_front=40.0, y_rear=52.0, vx=0.0, vy=-24.0, length=12.0,
                                n_features=30)
     assert _extent(approaching, 3.0) == pytest.approx((39.0, 40.0 + 4.5 + 1.0))  # at least a car's length
+
+
+def test_a_roof_fragment_does_not_hold_two_queued_cars_together_once_they_part():
+    """Two cars crawl 6 m apart at one speed: the pair graph joins them (closer than connection_m), and the
+    follower's roof, a group of its own (projected further), joins that one vehicle as a fragment for good.
+    When the leader then pulls away the two cars come apart, the roof staying with the follower (it shares
+    more pairs with it), instead of the roof holding them together as one vehicle to the end."""
+    def pull_away(t: float) -> tuple[float, float]:
+        late = max(t - 1.2, 0.0)
+        return -5.0 * t - 1.5 * late ** 2, -5.0 - 3.0 * late
+
+    leader = (_box(-1.0, 1.0, 40.0, 41.5, 6, 21), pull_away, 2, 0, 0.0)
+    follower = (_box(-1.0, 1.0, 46.0, 49.0, 9, 22), -5.0, 2, 0, 0.0)
+    roof = (_box(-0.8, 0.8, 46.5, 48.5, 6, 23), -5.0, 2, 12, 2.6)
+
+    def sizes_at(seen: dict[int, list], t: float) -> list[int]:
+        return sorted(st.n_features for ss in seen.values() for st in ss if abs(st.t - t) < 1e-6)
+
+    assert sizes_at(_run([leader, follower, roof], frames=30), 1.16) == [21]  # one vehicle with its roof
+    assert sizes_at(_run([leader, follower, roof], frames=90), 3.52) == [6, 15]  # the leader apart
+    # at one speed they stay one vehicle: the pair graph's tolerance is not what parts them
+    assert sizes_at(_run([(leader[0], -5.0, 2, 0, 0.0), follower, roof], frames=90), 3.52) == [21]

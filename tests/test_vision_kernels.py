@@ -133,3 +133,37 @@ def test_pair_graph_and_components_match_reference():
     for lab in set(expect.values()):
         members = [i for i, v in expect.items() if v == lab]
         assert len(set(veh[members])) == 1
+
+
+def test_a_fragment_joins_one_part_of_a_vehicle_that_has_come_apart():
+    """Slots 0-2 and 3-6 were two queued cars linked while crawling together; a roof fragment (7, 8) joined
+    that one vehicle for good (MERGED to all its slots). Once the leader pulls away (its links to the follower
+    dismissed) the fragment stays with the part it shares most pairs with and does not hold the cars together."""
+    L, M = ref.LINKED, ref.MERGED_HI  # the higher slot is the fragment's
+    state = np.zeros((9, 9), np.int8)
+    for a, b in [(0, 1), (1, 2), (3, 4), (4, 5), (5, 6), (7, 8)]:
+        state[a, b] = L
+    for f in (7, 8):
+        for h in range(7):
+            state[h, f] = M
+    labels = np.full(9, -1, np.int64)
+    components(np.arange(9), state, labels)
+    assert len(set(labels[:3])) == 1 and len(set(labels[3:])) == 1
+    assert labels[0] != labels[3]  # the follower (4 slots) keeps the fragment, the leader goes its own way
+    assert ref.components_ref(np.arange(9), state) == {i: int(labels[i]) for i in range(9)}
+    state[2, 3] = L  # still linked: one vehicle
+    components(np.arange(9), state, labels)
+    assert len(set(labels)) == 1
+
+
+def test_components_with_fragments_match_reference():
+    rng = np.random.default_rng(5)
+    for trial in range(30):
+        n = int(rng.integers(5, 40))
+        state = np.zeros((n, n), np.int8)
+        iu = np.triu_indices(n, 1)
+        state[iu] = rng.choice([0, 1, 2, 3, 4], len(iu[0]), p=[0.5, 0.08, 0.38, 0.02, 0.02])
+        live = np.sort(rng.choice(n, int(rng.integers(1, n + 1)), replace=False)).astype(np.int64)
+        labels = np.full(n, -1, np.int64)
+        components(live, state, labels)
+        assert {int(i): int(labels[i]) for i in live} == ref.components_ref(live, state), trial
