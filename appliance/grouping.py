@@ -220,6 +220,7 @@ def components(live, state, labels):
     for a in range(n):
         parent[a] = _root(parent, a)
     if merged:
+        part = parent.copy()  # the LINKED components, by root
         shared = np.zeros((n, n), np.int32)  # [fragment's component, host's component] -> MERGED pairs
         for a in range(n):
             i = live[a]
@@ -227,13 +228,13 @@ def components(live, state, labels):
                 j = live[b]
                 lo_a = i < j
                 st = state[i, j] if lo_a else state[j, i]
-                if (st == MERGED_LO or st == MERGED_HI) and parent[a] != parent[b]:
+                if (st == MERGED_LO or st == MERGED_HI) and part[a] != part[b]:
                     if (st == MERGED_LO) == lo_a:  # a's feature is the fragment's
-                        shared[parent[a], parent[b]] += 1
+                        shared[part[a], part[b]] += 1
                     else:
-                        shared[parent[b], parent[a]] += 1
+                        shared[part[b], part[a]] += 1
         for c in range(n):
-            if parent[c] == c:
+            if part[c] == c:  # every component picks its host, also one that another has just joined
                 host = np.argmax(shared[c])
                 if shared[c, host] > 0:
                     _union(parent, c, host)

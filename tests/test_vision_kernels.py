@@ -156,6 +156,20 @@ def test_a_fragment_joins_one_part_of_a_vehicle_that_has_come_apart():
     assert len(set(labels)) == 1
 
 
+def test_a_fragment_of_a_fragment_joins_through_it():
+    """A roof (0, 1) joined a cab (2, 3) as a fragment, and the cab was later found to be a part of a
+    trailer's vehicle (4-6): all three are one vehicle, whichever slots they hold."""
+    state = np.zeros((7, 7), np.int8)
+    for a, b in [(0, 1), (2, 3), (4, 5), (5, 6)]:
+        state[a, b] = ref.LINKED
+    state[0, 2] = ref.MERGED_LO  # 0's feature is the fragment (of 2's vehicle)
+    state[2, 4] = ref.MERGED_LO
+    labels = np.full(7, -1, np.int64)
+    components(np.arange(7), state, labels)
+    assert set(labels) == {0}
+    assert ref.components_ref(np.arange(7), state) == {i: 0 for i in range(7)}
+
+
 def test_components_with_fragments_match_reference():
     rng = np.random.default_rng(5)
     for trial in range(30):
