@@ -49,6 +49,13 @@ FRAGMENT_X_MARGIN_NO_CAMERA_M = 2.0  # ... for elevated parts when the camera po
 MIN_LENGTH_M = 4.5  # the footprint reaches at least this far behind the vehicle's front (shortest car)
 GHOST = -1  # host id meaning "a vehicle finalised in the last GHOST_S seconds" (its leftovers)
 GHOST_S = 2.0
+# A new group that would join a vehicle as an elevated part (moving faster in projection) is watched first: a
+# faster follower closing in behind looks just the same until one of the two changes speed (congestion).
+WATCH_S = 1.0  # watched this long, unreported (followers' speed ratios change 10-25 % in a second of braking)
+WATCH_K = 1.05  # ... when its speed ratio to the vehicle is above this (a level part joins at once)
+WATCH_MIN_HITS = 5  # ... and it joins after matching the vehicle in this many frames ...
+WATCH_K_DRIFT = 0.1  # ... if its speed ratio held within this share (parts: within 2-8 %)
+WATCHING = -2  # host id meaning "still watched"
 # a reported vehicle lost short of its exit (stopped in a queue, occluded) may be found again as a new group:
 # within this long and this far of where it was lost, a new group has not entered the view (see _entered)
 LOST_KEEP_S = 60.0
@@ -316,6 +323,8 @@ class VehicleTrack:
     own_length: float = 0.0  # the group's length before fragments joined it
     merged: bool = False
     votes: tuple[int, int, float] = (0, 0, 0.0)  # (candidate host, consecutive frames it matched, place on it)
+    watch_host: int = 0  # a vehicle this new group may be an elevated part of (see Grouper._watched) ...
+    watch: list[tuple[float, float, bool]] = field(default_factory=list)  # ... (t, speed ratio, matched it)
     shadow_tests: tuple[float, int, int] | None = None  # (first test's time, frames tested, frames found
     # only a shadow on the road)
     ground: tuple[float, float, int] | None = None  # reported length, far end on the road, lane direction
@@ -365,6 +374,7 @@ class Grouper:
         self.next_vid = 1
         self.finished_total = 0
         self._place = 0.0
+        self._k = 1.0  # the speed ratio of the last group _host_of matched to its host (1 for a side part)
         self.merged_now: set[int] = set()  # groups joined to another vehicle in the last step (for the pipeline's hold)
         self.recent: list[tuple[VehicleState, float, float]] = []  # finished vehicles, for their leftovers
         self.lost: list[tuple[float, int, float]] = []  # (t, lane index, near end) of reported vehicles lost
@@ -557,6 +567,13 @@ class Grouper:
                     continue
             elif tr.reported:
                 tr.votes = (0, 0, 0.0)
+            elif (host is not None and host in groups and self._k > WATCH_K) or tr.watch_host:
+                host = self._watched(tr, st, host if host in groups else None, groups)
+                if host == WATCHING:
+                    continue
+                if host == GHOST:
+                    self._retire_quietly(tr.id, members, retire)
+                    continue
             if host is not None:
                 self._link(members, groups[host])
                 self.fvid[members] = host
@@ -577,6 +594,33 @@ class Grouper:
             out = [st for st in out if st.id != vid]
         slots = np.concatenate(retire) if retire else np.zeros(0, np.int64)
         return [self._grounded(st, ground.get(st.id)) for st in out], slots
+
+    def _watched(self, tr: VehicleTrack, st: VehicleState, host: int | None, groups: dict[int, np.ndarray]
+                 ) -> int | None:
+        """A new group seen as an elevated part of host: a faster follower closing in on a vehicle looks just
+        the same until either changes speed. It is watched WATCH_S (unreported) with its speed ratio to the
+        host in every frame, matched there or not (its near end and the host's extent flicker); it then joins
+        the host if it matched it in WATCH_MIN_HITS frames and the ratio held, else it is a vehicle (None).
+        WATCHING meanwhile; GHOST if the host has gone (finished) with the group a part of it so far."""
+        if host is not None and tr.watch_host != host:
+            tr.watch_host, tr.watch = host, []  # another vehicle: start again
+        other = self.tracks.get(tr.watch_host)
+        if other is not None and other.last is not None and other.last.t == st.t:
+            if other.last.vy * st.vy > 0:
+                tr.watch.append((st.t, st.vy / other.last.vy, host is not None))
+            if not tr.watch or st.t - tr.watch[0][0] < WATCH_S:
+                return WATCHING
+        watch, watched = tr.watch, tr.watch_host
+        tr.watch_host, tr.watch = 0, []
+        if sum(hit for _, _, hit in watch) < WATCH_MIN_HITS:
+            return None
+        ks = [k for _, k, _ in watch]
+        m = max(len(ks) // 3, 1)  # the ratio over the first third of the watch and over the last
+        if abs(_median(ks[-m:]) / _median(ks[:m]) - 1.0) > WATCH_K_DRIFT:
+            return None
+        if other is None or other.last is None or other.last.t != st.t:
+            return GHOST
+        return watched if watched in groups else None
 
     def matching_host(self, vid: int) -> bool:
         """Whether a reported group is gathering votes to join a vehicle it may be a part of."""
@@ -676,6 +720,7 @@ class Grouper:
             m = FRAGMENT_X_MARGIN_NO_CAMERA_M if vy / o.vy > 1.05 else FRAGMENT_X_MARGIN_M
             if lo <= y <= hi and x_lo - m <= st.x <= x_hi + m:
                 return GHOST
+        self._k = 1.0
         side = self._side_host(tr, st, y, vy, members, sign, shadow)
         if side is not None:
             return side
@@ -706,6 +751,7 @@ class Grouper:
             lo, hi = _extent(o, other.own_length)
             if lo <= gy <= hi and other.x_lo - m <= gx <= other.x_hi + m:
                 self._place = gy - o.y_front  # where on the vehicle the group lies
+                self._k = k
                 return vid
         return None
 
