@@ -61,7 +61,8 @@ WATCHING = -2  # host id meaning "still watched"
 LOST_KEEP_S = 60.0
 REFOUND_M = 6.0
 RECHECK_S = 1.5  # a reported group is re-checked for being a fragment of another vehicle this long
-RECHECK_VOTES = 10  # ... and joins a vehicle only after matching it in this many consecutive frames
+RECHECK_VOTES = 10  # ... and joins a vehicle only after matching it in this many frames (a frame without a
+# match is no evidence: the image's shadow test and the groups' extents flicker)
 RECHECK_DRIFT_M = 1.5  # ... at a steady place on it (this much drift: a separate vehicle overtaking)
 # ... as an elevated part at least this much faster (roof fragments: 1.15-1.5; a receding vehicle's speed
 # may read a few per cent low, and a level part is a queued car's business)
@@ -322,7 +323,7 @@ class VehicleTrack:
     n_now: int = 0
     own_length: float = 0.0  # the group's length before fragments joined it
     merged: bool = False
-    votes: tuple[int, int, float] = (0, 0, 0.0)  # (candidate host, consecutive frames it matched, place on it)
+    votes: tuple[int, int, float] = (0, 0, 0.0)  # (candidate host, frames it matched, place on it)
     watch_host: int = 0  # a vehicle this new group may be an elevated part of (see Grouper._watched) ...
     watch: list[tuple[float, float, bool]] = field(default_factory=list)  # ... (t, speed ratio, matched it)
     shadow_tests: tuple[float, int, int] | None = None  # (first test's time, frames tested, frames found
@@ -565,9 +566,7 @@ class Grouper:
                 if n < RECHECK_VOTES:
                     out.append(st)
                     continue
-            elif tr.reported:
-                tr.votes = (0, 0, 0.0)
-            elif (host is not None and host in groups and self._k > WATCH_K) or tr.watch_host:
+            elif not tr.reported and ((host is not None and host in groups and self._k > WATCH_K) or tr.watch_host):
                 host = self._watched(tr, st, host if host in groups else None, groups)
                 if host == WATCHING:
                     continue
