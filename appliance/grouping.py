@@ -46,13 +46,14 @@ PASS_X_M = 1.5  # ... the vehicle passing within this much across the road
 # when, after undoing the height magnification, its near end lies in that vehicle's footprint:
 FRAGMENT_X_MARGIN_M = 0.5  # lateral slack around the footprint
 FRAGMENT_X_MARGIN_NO_CAMERA_M = 2.0  # ... for elevated parts when the camera position is unknown
+LEVEL_K = 1.05  # a part at most this much faster than its vehicle (in projection) is level with it: no height
+# magnification to undo, and it joins at once (a faster one is an elevated part, watched first: WATCH_S)
 MIN_LENGTH_M = 4.5  # the footprint reaches at least this far behind the vehicle's front (shortest car)
 GHOST = -1  # host id meaning "a vehicle finalised in the last GHOST_S seconds" (its leftovers)
 GHOST_S = 2.0
 # A new group that would join a vehicle as an elevated part (moving faster in projection) is watched first: a
 # faster follower closing in behind looks just the same until one of the two changes speed (congestion).
 WATCH_S = 1.0  # watched this long, unreported (followers' speed ratios change 10-25 % in a second of braking)
-WATCH_K = 1.05  # ... when its speed ratio to the vehicle is above this (a level part joins at once)
 WATCH_MIN_HITS = 5  # ... and it joins after matching the vehicle in this many frames ...
 WATCH_K_DRIFT = 0.1  # ... if its speed ratio held within this share (parts: within 2-8 %)
 WATCHING = -2  # host id meaning "still watched"
@@ -566,7 +567,7 @@ class Grouper:
                 if n < RECHECK_VOTES:
                     out.append(st)
                     continue
-            elif not tr.reported and ((host is not None and host in groups and self._k > WATCH_K) or tr.watch_host):
+            elif not tr.reported and ((host in groups and self._k > LEVEL_K) or tr.watch_host):
                 host = self._watched(tr, st, host if host in groups else None, groups)
                 if host == WATCHING:
                     continue
@@ -716,7 +717,7 @@ class Grouper:
             lo, hi = _extent(o)
             lo, hi = lo + dy, hi + dy
             # an elevated leftover (moving faster in projection) may lie across the lane; a level one may not
-            m = FRAGMENT_X_MARGIN_NO_CAMERA_M if vy / o.vy > 1.05 else FRAGMENT_X_MARGIN_M
+            m = FRAGMENT_X_MARGIN_NO_CAMERA_M if vy / o.vy > LEVEL_K else FRAGMENT_X_MARGIN_M
             if lo <= y <= hi and x_lo - m <= st.x <= x_hi + m:
                 return GHOST
         self._k = 1.0
@@ -741,7 +742,7 @@ class Grouper:
                 continue
             gx, gy = st.x, y
             m = FRAGMENT_X_MARGIN_M
-            if k > 1.05:
+            if k > LEVEL_K:
                 if self.foot is not None:
                     gx = self.foot[0] + (st.x - self.foot[0]) / k
                     gy = self.foot[1] + (y - self.foot[1]) / k
