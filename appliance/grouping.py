@@ -32,6 +32,11 @@ NEAR_REP_M = 3.0  # features this close along the road to the representative one
 MAX_LEAD_M = 1.5  # how far the reported near end may run ahead of the lowest feature
 MIN_TRAVEL_M = 1.0  # a group is reported once it has moved this far (static texture never does)
 MIN_SPEED_MPS = 1.5  # ... and is moving at least this fast (vehicles are found while they move)
+# At night (Grouper.lights_only) a vehicle is seen by its lights alone: a group one feature short of
+# TrackingParams.min_features (a motorcycle's one headlamp) is a vehicle once it has held together this long
+# over this distance (by day such groups are mostly parts of vehicles that have yet to join them)
+SMALL_S = 1.0
+SMALL_M = 5.0
 # A group not yet reported whose near end has stood still this long (within STILL_M) starts its trajectory
 # afresh, also after it moved a little: features on an occluder's edge where vehicles emerge (dragged a
 # metre by the vehicle that passed behind it, then stuck), joined by the next vehicle once it comes out,
@@ -377,6 +382,7 @@ class Grouper:
         self.finished_total = 0
         self._place = 0.0
         self._k = 1.0  # the speed ratio of the last group _host_of matched to its host (1 for a side part)
+        self.lights_only = False  # a night scene: vehicles seen by their lights alone (set by the pipeline)
         self.merged_now: set[int] = set()  # groups joined to another vehicle in the last step (for the pipeline's hold)
         self.recent: list[tuple[VehicleState, float, float]] = []  # finished vehicles, for their leftovers
         self.lost: list[tuple[float, int, float]] = []  # (t, lane index, near end) of reported vehicles lost
@@ -483,7 +489,7 @@ class Grouper:
             tr.frames += 1
             tr.n_now = len(members)
             tr.n_max = max(tr.n_max, len(members))
-            if not tr.reported and tr.n_max < p.min_features:
+            if not tr.reported and tr.n_max < p.min_features - int(self.lights_only):
                 if not tr.trajectory:  # too small to be a vehicle yet: only remember where it started
                     tr.trajectory.append((t, float(s[members[0], 0]), float(s[members[0], 1])))
                     tr.start_y = tr.trajectory[0][2]
@@ -551,7 +557,9 @@ class Grouper:
                 continue
             if tr.reported and t - tr.report_t > RECHECK_S:
                 out.append(st)
-            elif tr.reported or (tr.n_max >= p.min_features and tr.frames >= p.min_track_frames and moved):
+            elif tr.reported or (tr.frames >= p.min_track_frames and moved and (
+                    tr.n_max >= p.min_features
+                    or (self.lights_only and t - tr.first_t >= SMALL_S and abs(rep_y - tr.start_y) >= SMALL_M))):
                 pending.append((tr, st, sign, members, length))
         # fragments are judged once every vehicle of this frame is up to date
         for tr, st, sign, members, length in pending:

@@ -27,6 +27,7 @@ REPEAT_GRID = 4  # subsampling step of the repeated-frame check
 # A genuinely still frame is skipped too, which loses nothing.
 REPEAT_MAX_DIFF = 20
 LANE_MARGIN_M = 2.0  # features this far beyond their lane's along-road extent are dropped
+NIGHT_GREY = 40.0  # a frame darker than this on average is a night scene (day scenes: 90-140, night: 10-25)
 LK_WIN = (15, 15)
 LK_LEVELS = 3
 LK_MARGIN_PX = 64  # crop margin around new corners for the initial-velocity flow (> motion per frame)
@@ -156,6 +157,7 @@ class VisionPipeline:
         st["frames"] += 1
         grid = img[::REPEAT_GRID, ::REPEAT_GRID]
         st["mean_grey"] = float(grid.mean())
+        self.grouper.lights_only = st["mean_grey"] < NIGHT_GREY
         if self.prev_grid is not None:
             _, peak, _, _ = cv2.minMaxLoc(cv2.absdiff(grid, self.prev_grid))
             repeated = frame.repeated or peak <= REPEAT_MAX_DIFF

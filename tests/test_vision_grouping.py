@@ -17,13 +17,14 @@ SETTLING = 0.6
 
 
 def _run(objects: list[tuple[np.ndarray, float, int, int]], frames: int = 90, lanes=None,
-         shadow_seen=None) -> dict[int, list]:
+         shadow_seen=None, night: bool = False) -> dict[int, list]:
     """objects: (ground points (n, 2) at t=0, speed along Y, lane, first frame seen, height above road).
     shadow_seen(frame): what the image's shadow test answers in that frame (default: no image test)."""
     site = parse_site(site_dict() if lanes is None else site_dict(lanes=lanes))
     zones = SiteZones(site)
     cx, cy, ch = zones.camera
     g = Grouper(site.tracking, zones)
+    g.lights_only = night
     n = site.tracking.max_features
     s = np.zeros((n, 4))
     px = np.zeros((n, 2))
@@ -114,6 +115,19 @@ def test_a_roof_still_watched_when_its_truck_leaves_the_view_is_no_vehicle():
     roof = (_box(-0.8, 0.8, 22.0, 29.0, 8, 2), -15.0, 2, 0, 3.5)
     seen = _run([truck, roof], frames=90)
     assert len(seen) == 1 and seen[min(seen)][-1].finished, {k: len(v) for k, v in seen.items()}
+
+
+def test_at_night_a_motorcycle_seen_by_three_features_counts_but_a_truck_s_three_feature_top_does_not():
+    """At night a vehicle shows only its lights: a motorcycle's headlamp gives three features, one short of
+    min_features. Having held together for a second over 15 m it is a vehicle; by day such a group is not. A
+    truck's top of three features (a group of its own, faster in projection) still joins its truck."""
+    motorcycle = (_box(-0.3, 0.3, 55.0, 56.0, 3, 41), -15.0, 2, 0, 0.7)
+    assert _counted(_run([motorcycle], night=True)) == 1
+    assert _counted(_run([motorcycle])) == 0
+    corners = np.array([[-1.0, 44.0], [1.0, 44.1]])  # its lamps: the front spans its width
+    truck = (np.vstack([corners, _box(-1.0, 1.0, 44.0, 54.0, 10, 42)]), -15.0, 2, 0, 0.0)
+    top = (_box(-0.8, 0.8, 46.0, 53.0, 3, 43), -15.0, 2, 12, 3.5)
+    assert _counted(_run([truck, top], night=True)) == 1
 
 
 def test_a_shadow_the_image_test_sees_in_two_frames_of_three_joins_its_vehicle():
