@@ -357,7 +357,7 @@ def test_a_vehicle_seen_only_by_its_lights_is_reported_at_a_typical_length():
 
     lights = (_box(-2.5, -1.0, 44.0, 44.2, 6, 7), -15.0, 1, 0, 0.6)
     seen = _run([lights], frames=60)
-    states = [st for ss in seen.values() for st in ss if not st.finished and st.y_front < 20.0]  # followed 8 m
+    states = [st for ss in seen.values() for st in ss if not st.finished and st.y_front < 20.0]  # followed 24 m
     assert states, seen
     assert all(st.length == NOMINAL_LENGTH_M for st in states), [round(st.length, 2) for st in states]
 
