@@ -46,6 +46,12 @@ STILL_M = 0.5
 # A reported group standing still this long that a vehicle of its lane then drives through is clutter
 # (features left on an occluder's edge): vehicles queue, they do not pass through one another.
 STALL_S = 2.0
+# A reported group whose speed falls from MOVING_MPS to STANDING_MPS within this long, none of its features
+# moving any more, has lost its vehicle: braking that hard would take 15 m/s^2. Its moving features went (lost,
+# or the vehicle drove out from under them) and the ones left stand on the road; kept, it would stand in its
+# lane adding time and no distance. (While some still move, the group may be clutter that a vehicle's new
+# features just joined, low in the image where it enters: they carry on as the vehicle.)
+DEAD_STOP_S = 0.2
 PASS_X_M = 1.5  # ... the vehicle passing within this much across the road
 # A new group is a fragment of a known vehicle (its elevated top or its rear, seen as a separate group)
 # when, after undoing the height magnification, its near end lies in that vehicle's footprint:
@@ -338,6 +344,7 @@ class VehicleTrack:
     fitted: bool = False  # the length has been measured from fitted features (see Grouper._ground_length)
     still_y: float = float("nan")  # where the near end has stood (within STILL_M) ...
     still_t: float = 0.0  # ... since when
+    fast_t: float = float("-inf")  # when it last moved at MOVING_MPS or faster
     # the near end's speed over SPEED_WINDOW_S (or None), for the trajectory's (last t, length) it was taken on
     _near_vy: tuple[tuple[float | None, int], float | None] = ((None, 0), None)
     trajectory: list[tuple[float, float, float]] = field(default_factory=list)
@@ -474,11 +481,7 @@ class Grouper:
             lambda a, host: host in groups and is_shadow(px[a], px[groups[host]]))
         for vid in list(self.tracks):
             if vid not in groups:
-                tr = self.tracks.pop(vid)
-                if self._qualifies_on_loss(tr):
-                    out.append(self._finish(tr, exited=False))
-                elif tr.reported and tr.trajectory:  # lost where it may be found again as a new group
-                    self.lost.append((t, tr.lane_index, tr.trajectory[-1][2]))
+                self._lose(self.tracks.pop(vid), t, out)
         for vid, members in groups.items():
             lanes = lane[members]
             tr = self.tracks.get(vid)
@@ -536,6 +539,14 @@ class Grouper:
                 id=vid, t=t, x=x, y_front=front, y_rear=rear, vx=vx,
                 vy=vy, length=length, n_features=int(len(members)),
             )
+            if abs(vy) >= MOVING_MPS:
+                tr.fast_t = t
+            elif (tr.reported and abs(vy) <= STANDING_MPS and t - tr.fast_t <= DEAD_STOP_S
+                  and float(np.abs(s[members, 3]).max()) < MOVING_MPS):
+                self.tracks.pop(vid)  # stopped dead: the vehicle is lost where it last moved
+                retire.append(members)
+                self._lose(tr, t, out)
+                continue
             tr.last = st
             if is_shadow is not None and self._lone_shadow(tr, t, px[members], is_shadow):
                 self._retire_quietly(vid, members, retire)
@@ -799,6 +810,14 @@ class Grouper:
             if gap <= SHADOW_GAP_M and width <= SHADOW_MAX_WIDTH_M and shadow is not None and shadow(members, vid):
                 return vid
         return None
+
+    def _lose(self, tr: VehicleTrack, t: float, out: list[VehicleState]) -> None:
+        """A vehicle's features are gone: it is finished if it had left its detection zone, else remembered
+        where it was lost (it may be found again as a new group)."""
+        if self._qualifies_on_loss(tr):
+            out.append(self._finish(tr, exited=False))
+        elif tr.reported and tr.trajectory:
+            self.lost.append((t, tr.lane_index, tr.trajectory[-1][2]))
 
     def _retire_quietly(self, vid: int, members: np.ndarray, retire: list[np.ndarray]) -> None:
         """End a group that is no vehicle of its own: never finalised, its held report never released (the

@@ -233,6 +233,37 @@ def test_a_still_group_that_a_vehicle_drives_through_is_dropped():
     assert _counted(seen) == 1  # the car, once
 
 
+def _stops_at(t_stop: float, decel: float | None):
+    """Motion at 15 m/s towards the camera until t_stop, then a stop: at once (decel None) or braking."""
+    def motion(t: float) -> tuple[float, float]:
+        if t < t_stop:
+            return -15.0 * t, -15.0
+        if decel is None:
+            return -15.0 * t_stop, 0.0
+        u = min(t - t_stop, 15.0 / decel)
+        return -15.0 * t_stop - 15.0 * u + 0.5 * decel * u * u, -15.0 + decel * u
+    return motion
+
+
+@pytest.mark.parametrize("decel", [None, 8.0])
+def test_a_group_that_stops_dead_has_lost_its_vehicle_but_a_braking_car_stands(decel):
+    """A reported car's features stop dead at 1.2 s, 15 m/s one frame and nothing the next: its moving features
+    went (lost, or the car drove out from under them) and the ones left stand on the road, which no vehicle
+    does. The vehicle is lost there: its group is not kept as a vehicle standing in the lane (that would add
+    time and no distance to the lane's Edie sums and pull its space-mean speed down). A car braking hard (8
+    m/s^2, standing from 3.1 s) is a vehicle standing in its lane to the end."""
+    car = (_box(-1.0, 1.0, 50.0, 54.5, 10, 41), _stops_at(1.2, decel), 2, 0, 0.0)
+    seen = _run([car], frames=100)
+    assert len(seen) == 1, {k: len(v) for k, v in seen.items()}
+    states = seen[min(seen)]
+    if decel is None:
+        # past its detection zone, so finished where it was lost (not at the exit zone)
+        assert 1.1 < states[-1].t <= 1.2 + 0.2 + DT and states[-1].finished and not states[-1].exited
+    else:
+        assert states[-1].t == pytest.approx(99 * DT) and abs(states[-1].vy) < 0.5
+        assert states[-1].y_front == pytest.approx(50.0 - 18.0 - 15.0 ** 2 / 16.0, abs=0.5)
+
+
 def test_a_vehicle_passing_a_standing_feature_is_never_grouped_with_it():
     """A corner left standing on an overhead sign's edge (settled, not moving) must not join the next
     vehicle that emerges beside it: features first seen together link when they are close, and this one
