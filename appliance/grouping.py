@@ -29,7 +29,6 @@ STANDING, MOVING = 1, 2
 STANDING_MPS = 1.0
 MOVING_MPS = 4.0
 NEAR_REP_M = 3.0  # features this close along the road to the representative one give the velocity
-MAX_LEAD_M = 1.5  # how far the reported near end may run ahead of the lowest feature
 MIN_TRAVEL_M = 1.0  # a group is reported once it has moved this far (static texture never does)
 MIN_SPEED_MPS = 1.5  # ... and is moving at least this fast (vehicles are found while they move)
 # At night (Grouper.lights_only) a vehicle is seen by its lights alone: a group one feature short of
@@ -505,18 +504,15 @@ class Grouper:
             length = float(ys.max() - ys.min())
             rep_y = float(s[rep, 1])
             # The representative point is the near end: the front of an approaching vehicle, the rear of a
-            # receding one. When the lowest feature is lost the next one is further back: the near end then
-            # carries on from where it was at the vehicle's speed (a new lower feature moves it forwards).
+            # receding one. It never goes backwards: when the lowest feature is lost and the next one is further
+            # back, the near end waits for it. (Carrying it on at the vehicle's speed instead made it creep
+            # ahead of the vehicle: every change of lowest feature, between features at about the same place,
+            # added a lead, and the features' speed is above the road's for any feature above the road.)
             near_v = body[(np.abs(ys - s[rep, 1]) < NEAR_REP_M) & (age[body] >= 3)]
             vy_near = _median(s[near_v, 3]) if len(near_v) else float(s[rep, 3])
             if tr.trajectory:
-                t0, _, prev = tr.trajectory[-1]
-                ahead = prev + vy_near * (t - t0)
-                # ... but never more than MAX_LEAD_M ahead of the lowest feature now, nor backwards
-                if sign < 0:
-                    rep_y = min(prev, max(min(rep_y, ahead), rep_y - MAX_LEAD_M))
-                else:
-                    rep_y = max(prev, min(max(rep_y, ahead), rep_y + MAX_LEAD_M))
+                prev = tr.trajectory[-1][2]
+                rep_y = min(prev, rep_y) if sign < 0 else max(prev, rep_y)
             else:
                 tr.start_y = rep_y
             g = self._ground_length(tr, sign, body, s, age, rep_y, length)

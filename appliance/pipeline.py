@@ -275,8 +275,9 @@ class VisionPipeline:
             speed = abs(vy)
         elif held and held[-1].t - held[0].t >= 0.5 * HOLD_S:
             # measured over the held points (elevated features' speeds are magnified), unless far below the
-            # near end's own: its points may have stood still a while when its lowest feature was lost
-            rate = abs(held[-1].y_front - held[0].y_front) / (held[-1].t - held[0].t)
+            # near end's own: its points may have stood still a while when its lowest feature was lost. The
+            # median of its steps: a near end that starts behind its front jumps when a lower feature appears
+            rate = _median_step_rate(held)
             speed = rate if rate >= STALL_SHARE * abs(v.vy) else abs(v.vy)
         else:
             speed = max(abs(v.vy), self._group_speed(v.id))
@@ -431,6 +432,14 @@ def _own_start(t: np.ndarray, y: np.ndarray) -> int:
     ok = (t[j] - t[still_from] >= STILL_S) & (moved > STILL_M) \
         & (moved > (0.5 * MAX_ACCEL_MPS2 * run + START_SLACK_MPS) * run)
     return n0 + int(j[ok][-1]) if ok.any() else 0
+
+
+def _median_step_rate(states: list[VehicleState]) -> float:
+    """The median along-road speed of a near end over its steps between consecutive states."""
+    t = np.array([st.t for st in states])
+    y = np.array([st.y_front for st in states])
+    ok = np.diff(t) > 0
+    return float(np.median(np.abs(np.diff(y)[ok]) / np.diff(t)[ok])) if ok.any() else 0.0
 
 
 def _released(held: list[VehicleState]) -> VehicleState:

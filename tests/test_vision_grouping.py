@@ -429,3 +429,36 @@ def test_a_roof_fragment_does_not_hold_two_queued_cars_together_once_they_part()
     assert sizes_at(_run([leader, follower, roof], frames=90), 3.52) == [6, 15]  # the leader apart
     # at one speed they stay one vehicle: the pair graph's tolerance is not what parts them
     assert sizes_at(_run([(leader[0], -5.0, 2, 0, 0.0), follower, roof], frames=90), 3.52) == [21]
+
+
+def test_the_near_end_follows_the_lowest_feature_and_does_not_creep_ahead_of_the_vehicle():
+    """A car's two lowest corners lie at its front, 5 cm apart, each measured with 8 cm of noise, so which of
+    them is lowest changes from frame to frame; like any feature above the road they read 3 % fast. The near
+    end stays with the lowest corner (never ahead of the front by more than the noise) and covers the car's
+    distance: a near end carried on at the features' speed whenever the lowest corner changes creeps ahead
+    of the car, and its speed reads high."""
+    site = parse_site(site_dict())
+    g = Grouper(site.tracking, SiteZones(site))
+    n = site.tracking.max_features
+    s, px = np.zeros((n, 4)), np.zeros((n, 2))
+    lane, alive, age = np.zeros(n, np.int32), np.zeros(n, np.bool_), np.zeros(n, np.int32)
+    rng = np.random.default_rng(5)
+    body = np.array([[-0.8, 0.0], [0.7, 0.05], [-0.6, 1.2], [0.5, 2.0], [-0.2, 3.1], [0.6, 4.2]])
+    members = np.arange(len(body))
+    g.reset_slots(members)
+    fronts, states = {}, []
+    for f in range(70):
+        t = f * DT
+        front = 70.0 - 20.0 * t
+        fronts[t] = front
+        noise = np.r_[rng.normal(0.0, 0.08, 2), np.zeros(len(body) - 2)]
+        for i, (x, dy) in enumerate(body):
+            y = front + dy + noise[i]
+            s[i], px[i] = (x, y, 0.0, -20.6), (x, -y)
+            lane[i], alive[i], age[i] = 2, True, f
+        out, _ = g.step(t, s, px, lane, alive, age)
+        states += [st for st in out if not st.finished]
+    assert len(states) > 40
+    assert min(st.y_front - fronts[st.t] for st in states) > -0.25
+    a, b = states[0], states[-1]
+    assert (a.y_front - b.y_front) / (fronts[a.t] - fronts[b.t]) == pytest.approx(1.0, abs=0.01)
