@@ -1,4 +1,5 @@
-"""Camera stabilisation: subpixel NCC of fiducial templates against the first frame gives the image shift.
+"""Camera stabilisation: subpixel NCC of fiducial templates against the first frame gives the image shift,
+referred to the camera's rest position (the first frame is as shaken as any other).
 
 Fiducials come from the site config, or are picked automatically (static textured points off the lanes).
 """
@@ -15,6 +16,12 @@ AUTO_COUNT = 8
 AUTO_SPACING_PX = 32
 AUTO_CHECK_FRAMES = 10  # auto-picked fiducials must match well in all of the first frames
 AUTO_MIN_EIG = 0.01
+# The first frame carries its own shake: the shift of the camera's rest position from it is the intercept of a
+# straight line (rest position plus steady drift) through the shifts of the first REST_FRAMES frames, applied
+# from REST_MIN_FRAMES on and at most REST_STEP_PX per frame, so tracked features never see it as motion.
+REST_FRAMES = 750
+REST_MIN_FRAMES = 50
+REST_STEP_PX = 0.02
 
 
 def _parabola(a: float, b: float, c: float) -> float:
@@ -39,6 +46,10 @@ class Stabiliser:
         self.ok = np.zeros(0, np.bool_)
         self.frames = 0
         self.auto = not self.configured
+        self.raw = np.zeros(2)  # the shift from the first frame
+        self.rest = np.zeros(2)  # the rest position's shift from the first frame, as applied so far
+        self._fit = np.zeros((4, 2))  # sums over frames: 1 and k (both axes), shift, k * shift
+        self._kk = 0.0  # sum of k * k
 
     def _pick(self, img: np.ndarray) -> list[tuple[float, float]]:
         h, w = img.shape
@@ -90,8 +101,8 @@ class Stabiliser:
             if not self.usable[k]:
                 self.ok[k] = False
                 continue
-            cx = int(round(x + self.offset[0]))
-            cy = int(round(y + self.offset[1]))
+            cx = int(round(x + self.raw[0]))
+            cy = int(round(y + self.raw[1]))
             x0, y0 = cx - r - SEARCH_PX, cy - r - SEARCH_PX
             x1, y1 = cx + r + SEARCH_PX + 1, cy + r + SEARCH_PX + 1
             if x0 < 0 or y0 < 0 or x1 > w or y1 > h:
@@ -112,12 +123,28 @@ class Stabiliser:
             # a fiducial disagreeing with the others by more than 1.5 px is moving or mismatched
             agree = good & (np.abs(disp - med).max(axis=1) <= 1.5)
             if agree.any():
-                self.offset = disp[agree].mean(axis=0)
+                self.raw = disp[agree].mean(axis=0)
             if self.auto and self.frames <= AUTO_CHECK_FRAMES:
                 # auto-picked points that match elsewhere than the others are not static: drop them
                 self.usable &= ~good | agree
             self.ok = agree
+        self._settle()
+        self.offset = self.raw - self.rest
         return float(self.offset[0]), float(self.offset[1])
+
+    def _settle(self) -> None:
+        """Fit the first REST_FRAMES shifts with a line over the frame number and move the applied rest position
+        towards its intercept."""
+        if self.frames <= REST_FRAMES:
+            k = float(self.frames - 1)
+            self._fit += [[1.0, 1.0], [k, k], self.raw, k * self.raw]
+            self._kk += k * k
+        n, sk, sy, sky = self._fit
+        det = n[0] * self._kk - sk[0] ** 2
+        if n[0] < REST_MIN_FRAMES or det <= 0:
+            return
+        intercept = (self._kk * sy - sk * sky) / det
+        self.rest += np.clip(intercept - self.rest, -REST_STEP_PX, REST_STEP_PX)
 
     @property
     def n_ok(self) -> int:
