@@ -39,10 +39,15 @@ def poll_demo(tmp_path: Path, port: int, seconds: float, period_s: int) -> tuple
                 counts = client.read_input_registers(rg.CH_COUNT, count=3, device_id=1).registers
                 block = client.read_input_registers(rg.PERIOD, count=6, device_id=1).registers
                 lanes = client.read_input_registers(rg.LANES, count=3 * rg.LANE_STRIDE, device_id=1).registers
+                # the period block and the lane records are two requests: a period published between them
+                # pairs one period's number with the next one's records (a controller reads the number again)
+                again = client.read_input_registers(rg.PERIOD, count=6, device_id=1).registers
             except Exception:  # noqa: BLE001 - the service may be stopping between two reads
                 break
             if not (bits and counts and block and lanes):
                 break
+            if again != block:
+                continue
             reads.append({"calls": bits, "counts": counts, "block": block, "lanes": lanes})
             if len(reads) == 20 and shutil.which("mbpoll"):
                 res = subprocess.run(["mbpoll", "-m", "tcp", "-p", str(port), "-a", "1", "-t", "3", "-r", "1",
