@@ -135,7 +135,7 @@ MAP: list[Field] = [
         Field("ir", CH_CLASS + CLASS_STRIDE * k, f"class{k}_count", "uint16", "vehicles", "1, wraps", f"Rolling count of length class {k} on channel c" + (f" (class {k} = measures.length_class_names[{k}], default {_DEFAULT_CLASSES[k]})" if k < len(_DEFAULT_CLASSES) else " (measures.length_class_names)"), "channel", MAX_CHANNELS)
         for k in range(MAX_CLASSES)
     ],
-    Field("ir", PERIOD + 0, "period_seq", "uint16", "", "0-255", "Sequence number of the last complete period, +1 per period (mod 256)"),
+    Field("ir", PERIOD + 0, "period_seq", "uint16", "", "0-255", "Sequence number of the last complete period, +1 per period (mod 256); read it again after the lane records (a separate request): if it changed, read them again"),
     Field("ir", PERIOD + 1, "period_length", "uint16", "s", "1", "Length of the last complete period; 0 = none yet"),
     Field("ir", PERIOD + 2, "period_start", "uint32", "s", "1", "Unix start time of the last complete period (high word at the lower address)"),
     Field("ir", PERIOD + 4, "period_lanes", "uint16", "", "1", "Lane slots filled in the period block"),
