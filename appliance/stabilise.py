@@ -48,8 +48,9 @@ class Stabiliser:
         self.auto = not self.configured
         self.raw = np.zeros(2)  # the shift from the first frame
         self.rest = np.zeros(2)  # the rest position's shift from the first frame, as applied so far
-        self._fit = np.zeros((4, 2))  # sums over frames: 1 and k (both axes), shift, k * shift
-        self._kk = 0.0  # sum of k * k
+        # sums over the first frames k = 0, 1, ... of the line fit: 1, k, k * k, shift, k * shift
+        self._n = self._sk = self._skk = 0.0
+        self._sy, self._sky = np.zeros(2), np.zeros(2)
 
     def _pick(self, img: np.ndarray) -> list[tuple[float, float]]:
         h, w = img.shape
@@ -137,13 +138,12 @@ class Stabiliser:
         towards its intercept."""
         if self.frames <= REST_FRAMES:
             k = float(self.frames - 1)
-            self._fit += [[1.0, 1.0], [k, k], self.raw, k * self.raw]
-            self._kk += k * k
-        n, sk, sy, sky = self._fit
-        det = n[0] * self._kk - sk[0] ** 2
-        if n[0] < REST_MIN_FRAMES or det <= 0:
+            self._n, self._sk, self._skk = self._n + 1.0, self._sk + k, self._skk + k * k
+            self._sy, self._sky = self._sy + self.raw, self._sky + k * self.raw
+        det = self._n * self._skk - self._sk ** 2
+        if self._n < REST_MIN_FRAMES or det <= 0:
             return
-        intercept = (self._kk * sy - sk * sky) / det
+        intercept = (self._skk * self._sy - self._sk * self._sky) / det
         self.rest += np.clip(intercept - self.rest, -REST_STEP_PX, REST_STEP_PX)
 
     @property
