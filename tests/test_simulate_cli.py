@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -31,6 +32,10 @@ def demo_run(tmp_path_factory) -> Path:
                         "--seed", "3", "--out", str(out), "--quiet"], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     assert "frames/s" in r.stdout
+    meta = json.loads((out / "truth" / "meta.json").read_text())
+    assert meta["encoder"] in r.stdout  # the encoder is said, and kept with the truth
+    if shutil.which("ffmpeg"):
+        assert meta["encoder"].startswith("libx264")
     return out
 
 

@@ -83,5 +83,6 @@ def simulate(preset: str, seed: int, seconds: float, out: Path, width: int, heig
         raise click.BadParameter(str(e)) from None
     dt = time.perf_counter() - t0
     n = res.meta["frame_count"]
-    click.echo(f"wrote {res.video} ({n} frames, {width}x{height} @ {fps:g} fps), {res.site}, {res.truth_dir}/")
+    click.echo(f"wrote {res.video} ({n} frames, {width}x{height} @ {fps:g} fps, {res.meta['encoder']}), {res.site}, "
+               f"{res.truth_dir}/")
     click.echo(f"rendered in {dt:.1f} s: {n / dt:.0f} frames/s")

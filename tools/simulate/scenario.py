@@ -40,12 +40,15 @@ class VideoWriter:
         self.path, self.n = path, 0
         self.proc = None
         self.cv = None
+        # what the video was encoded with (scenes from the two encoders differ, and so do replays of them)
+        self.encoder = f"libx264 crf {crf} (ffmpeg)"
         if shutil.which("ffmpeg"):
             cmd = ["ffmpeg", "-loglevel", "error", "-y", "-f", "rawvideo", "-pix_fmt", "gray", "-s", f"{width}x{height}",
                    "-r", f"{fps:g}", "-i", "-", "-c:v", "libx264", "-preset", "ultrafast", "-tune", "zerolatency",
                    "-crf", str(crf), "-pix_fmt", "yuv420p", "-threads", "1", str(path)]
             self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE)
         else:
+            self.encoder = "mp4v (OpenCV; ffmpeg not found: install it for H.264 like a camera's)"
             self.cv = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (width, height), True)
             if not self.cv.isOpened():
                 raise RuntimeError(f"cannot open a video writer for {path}")
@@ -163,7 +166,7 @@ def render_scenario(preset: str, seed: int, seconds: float, out_dir: Path, *, wi
     write_csv(truth_dir / "frames.csv", ["frame", "t", "repeated", "dropped_before"], frames_rows)
     meta = dict(
         preset=preset, seed=int(seed), fps=float(fps), width=width, height=height, seconds=float(seconds),
-        frame_count=writer.n, start_wall=scene.truth.start_wall, period_s=scene.truth.period_s,
+        frame_count=writer.n, encoder=writer.encoder, start_wall=scene.truth.start_wall, period_s=scene.truth.period_s,
         defects=dict(repeat_frames=p.repeat_frames, drop_prob=p.drop_prob, jitter_ms=p.jitter_ms,
                      dropped_frames=int(dropped.sum()), interlaced=p.interlaced),
         camera=dict(height_m=scene.cam.height_m, tilt_deg=scene.cam.tilt_deg, pan_deg=scene.cam.pan_deg,
