@@ -29,6 +29,7 @@ MIN_CELL_SHARE = 0.6  # ... of which this share must correlate
 INNER_KERNEL = np.ones((3, 3), np.uint8)  # else over the dark area without its edge pixels
 MIN_INNER_PX = 12
 MIN_ATTACHED_DARK = 0.6  # the image between a vehicle and its shadow is shadow too (a shadow touches its caster)
+MIN_JOINED_SHARE = 0.85  # the image between two parts of one vehicle is that vehicle, not the road
 
 
 class Background:
@@ -81,6 +82,21 @@ class Background:
         n = a.size
         return (np.count_nonzero(a > b + NOISE) <= MAX_BRIGHT_SHARE * n
                 and np.count_nonzero(a < b - NOISE) >= MIN_ATTACHED_DARK * n)
+
+    def is_joined(self, img: np.ndarray, pts: np.ndarray, other: np.ndarray) -> bool:
+        """True when the image along the line between the nearest two of points pts and other differs from
+        the road throughout: the two are parts of one body (two vehicles have road between them)."""
+        if not self.ready or len(pts) == 0 or len(other) == 0:
+            return False
+        d = ((pts[:, None, :] - other[None, :, :]) ** 2).sum(axis=2)
+        i, j = np.unravel_index(int(np.argmin(d)), d.shape)
+        a, b = pts[i], other[j]
+        n = int(np.abs(b - a).max()) + 1
+        h, w = img.shape
+        xs = np.clip(np.round(np.linspace(a[0], b[0], n)).astype(np.int64), 0, w - 1)
+        ys = np.clip(np.round(np.linspace(a[1], b[1], n)).astype(np.int64), 0, h - 1)
+        diff = np.abs(img[ys, xs].astype(np.int16) - self.bg[ys, xs].astype(np.int16))
+        return np.count_nonzero(diff > NOISE) >= MIN_JOINED_SHARE * n
 
     def is_shadow(self, img: np.ndarray, pts: np.ndarray, plain_ok: bool = True) -> bool:
         """True when the box around image points pts (n x 2, x y) differs from the road only by a shadow.

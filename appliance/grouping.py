@@ -3,7 +3,8 @@
 A pair is linked when first seen together within the connection distance and dismissed when
 its distance range over the common interval exceeds the segmentation threshold (TI/Beymer style).
 A new group that is part of a known vehicle (its roof, projected further and faster) joins it; a
-reported one is watched for RECHECK_S more and joins once it keeps one place on a vehicle.
+reported one is watched for RECHECK_S more and joins once it keeps one place on a vehicle. A part beyond what
+is seen of its vehicle joins only where the image between the two is one body.
 """
 
 from __future__ import annotations
@@ -59,6 +60,13 @@ FRAGMENT_X_MARGIN_NO_CAMERA_M = 2.0  # ... for elevated parts when the camera po
 LEVEL_K = 1.05  # a part at most this much faster than its vehicle (in projection) is level with it: no height
 # magnification to undo, and it joins at once (a faster one is an elevated part, watched first: WATCH_S)
 MIN_LENGTH_M = 4.5  # the footprint reaches at least this far behind the vehicle's front (shortest car)
+# An elevated part (its height undone) may lie anywhere over a vehicle up to this long and this wide (the
+# longest and widest allowed on the road), beyond what is seen of the vehicle low down, where the image between
+# the two is one body: the features seen low on a truck are often its cab alone, its box's top a group of its
+# own that a camera beside the road sees over the next lane. (A faster vehicle in the next lane or behind looks
+# the same in projection; the road between the two in the image tells them apart.)
+ELEVATED_LENGTH_M = 18.75
+ELEVATED_WIDTH_M = 2.6
 GHOST = -1  # host id meaning "a vehicle finalised in the last GHOST_S seconds" (its leftovers)
 GHOST_S = 2.0
 # A new group that would join a vehicle as an elevated part (moving faster in projection) is watched first: a
@@ -458,10 +466,12 @@ class Grouper:
 
     def step(self, t: float, s: np.ndarray, px: np.ndarray, lane: np.ndarray, alive: np.ndarray, age: np.ndarray,
              is_shadow: Callable[[np.ndarray, np.ndarray | None], bool] | None = None,
+             is_joined: Callable[[np.ndarray, np.ndarray], bool] | None = None,
              ) -> tuple[list[VehicleState], np.ndarray]:
         """Returns the vehicle states for this frame and the feature slots to retire (finalised vehicles).
         is_shadow(points, caster points) tells whether image points lie on a shadow of the caster's (with
-        caster None: on a shadow at all)."""
+        caster None: on a shadow at all); is_joined(points, other points) whether the image between the two
+        is one body, not the road."""
         p = self.p
         live = np.flatnonzero(alive)
         retire: list[np.ndarray] = []
@@ -478,6 +488,9 @@ class Grouper:
         # shadow(group slots, host id): the image test for a group lying only on the host's shadow
         shadow = None if is_shadow is None else (
             lambda a, host: host in groups and is_shadow(px[a], px[groups[host]]))
+        # joined(group slots, host id): the image test for a group and the host being one body
+        joined = None if is_joined is None else (
+            lambda a, host: host in groups and is_joined(px[a], px[groups[host]]))
         for vid in list(self.tracks):
             if vid not in groups:
                 self._lose(self.tracks.pop(vid), t, out)
@@ -570,7 +583,7 @@ class Grouper:
                 pending.append((tr, st, sign, members, length))
         # fragments are judged once every vehicle of this frame is up to date
         for tr, st, sign, members, length in pending:
-            host = self._host_of(tr, st, sign, members, shadow)
+            host = self._host_of(tr, st, sign, members, shadow, joined)
             if host == GHOST:  # the rest of a vehicle already finalised
                 self._retire_quietly(tr.id, members, retire)
                 continue
@@ -714,11 +727,14 @@ class Grouper:
         return replace(st, y_rear=far, length=g)
 
     def _host_of(self, tr: VehicleTrack, st: VehicleState, sign: int, members: np.ndarray,  # noqa: C901
-                 shadow: Callable[[np.ndarray, int], bool] | None) -> int | None:
+                 shadow: Callable[[np.ndarray, int], bool] | None,
+                 joined: Callable[[np.ndarray, int], bool] | None = None) -> int | None:
         """A reported vehicle that this new group is a part of: after undoing the height magnification
         (its projected speed over the vehicle's, k >= 1) the group's near end falls inside the vehicle's
-        footprint. Tall vehicles' tops seen in the next lane, or behind them, are such fragments. Sets
-        self._place (where on the host the group lies) for the caller's steadiness votes."""
+        footprint, or (an elevated part with the image between them one body) a footprint as long and wide as
+        any vehicle's: see ELEVATED_LENGTH_M. Tall vehicles' tops seen in the next lane, or behind them, are
+        such fragments. Sets self._place (where on the host the group lies) for the caller's steadiness
+        votes."""
         y = tr.trajectory[-1][2]
         # a reported group's speed over a while (steadier); a new one has only its features' speeds
         vy = st.vy
@@ -764,7 +780,12 @@ class Grouper:
                 else:  # camera unknown: an elevated part may lie anywhere across the vehicle's lane
                     m = FRAGMENT_X_MARGIN_NO_CAMERA_M
             lo, hi = _extent(o, other.own_length)
-            if lo <= gy <= hi and other.x_lo - m <= gx <= other.x_hi + m:
+            x_lo, x_hi = other.x_lo, other.x_hi
+            if (k > LEVEL_K and self.foot is not None and joined is not None
+                    and not (gy <= hi and x_lo - m <= gx <= x_hi + m) and joined(members, vid)):
+                x_lo, x_hi = min(x_lo, x_hi - ELEVATED_WIDTH_M), max(x_hi, x_lo + ELEVATED_WIDTH_M)
+                hi = max(hi, lo + 1.0 + ELEVATED_LENGTH_M + 1.0)
+            if lo <= gy <= hi and x_lo - m <= gx <= x_hi + m:
                 self._place = gy - o.y_front  # where on the vehicle the group lies
                 self._k = k
                 return vid

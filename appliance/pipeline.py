@@ -186,7 +186,8 @@ class VisionPipeline:
         c3 = time.perf_counter()
         self.background.update(img)
         states, retire = self.grouper.step(frame.t, tr.s, tr.px, tr.lane, tr.alive, tr.age,
-                                           lambda pts, caster: self._is_shadow(img, pts, caster))
+                                           lambda pts, caster: self._is_shadow(img, pts, caster),
+                                           lambda pts, other: self.background.is_joined(img, pts, other))
         if len(retire):
             tr.kill(retire)
         states = self._hold_new(states)

@@ -71,3 +71,18 @@ def test_on_a_plain_road_an_even_dimming_counts_only_where_allowed():
     dimmed[40:71, 50:101] = 60
     assert bg.is_shadow(dimmed, pts)
     assert not bg.is_shadow(dimmed, pts, plain_ok=False)
+
+
+def test_two_parts_are_one_body_only_where_the_image_between_them_is_off_the_road():
+    road = _road()
+    bg = _learnt(road)
+    cab = np.array([[60.0, 90.0], [75.0, 92.0]])  # a truck's cab, low in the image
+    top = np.array([[40.0, 30.0], [52.0, 34.0]])  # its box's top, higher and off to one side
+    truck = road.copy()
+    truck[28:95, 38:80] = np.clip(180 + np.random.default_rng(7).normal(0, 6, (67, 42)), 0, 255).astype(np.uint8)
+    assert bg.is_joined(truck, top, cab)
+    two = road.copy()  # two vehicles, with the road between them
+    two[80:95, 58:80] = 200
+    two[28:40, 38:56] = 60
+    assert not bg.is_joined(two, top, cab)
+    assert not Background().is_joined(truck, top, cab)  # no road learnt yet: no answer but "no"

@@ -17,9 +17,10 @@ SETTLING = 0.6
 
 
 def _run(objects: list[tuple[np.ndarray, float, int, int]], frames: int = 90, lanes=None,
-         shadow_seen=None, night: bool = False) -> dict[int, list]:
+         shadow_seen=None, night: bool = False, joined: bool | None = None) -> dict[int, list]:
     """objects: (ground points (n, 2) at t=0, speed along Y, lane, first frame seen, height above road).
-    shadow_seen(frame): what the image's shadow test answers in that frame (default: no image test)."""
+    shadow_seen(frame): what the image's shadow test answers in that frame (default: no image test); joined:
+    what the image test of two groups being one body answers (default: no image test)."""
     site = parse_site(site_dict() if lanes is None else site_dict(lanes=lanes))
     zones = SiteZones(site)
     cx, cy, ch = zones.camera
@@ -52,7 +53,8 @@ def _run(objects: list[tuple[np.ndarray, float, int, int]], frames: int = 90, la
                     age[slot] = f - first
                 slot += 1
         is_shadow = None if shadow_seen is None else (lambda pts, caster, f=f: shadow_seen(f))
-        states, retire = g.step(t, s, px, lane, alive, age, is_shadow)
+        is_joined = None if joined is None else (lambda a, b: joined)
+        states, retire = g.step(t, s, px, lane, alive, age, is_shadow, is_joined)
         alive[retire] = False
         for st in states:
             seen.setdefault(st.id, []).append(st)
@@ -462,3 +464,16 @@ def test_the_near_end_follows_the_lowest_feature_and_does_not_creep_ahead_of_the
     assert min(st.y_front - fronts[st.t] for st in states) > -0.25
     a, b = states[0], states[-1]
     assert (a.y_front - b.y_front) / (fronts[a.t] - fronts[b.t]) == pytest.approx(1.0, abs=0.01)
+
+
+@pytest.mark.parametrize("joined", [True, False])
+def test_a_trucks_box_seen_beyond_its_cab_and_over_the_next_lane_joins_it_where_the_image_shows_one_body(joined):
+    """Only a truck's cab is seen low (its first 2.5 m); its box top, 3.8 m up and 4 to 11 m behind the front,
+    is a group of its own whose features lie over the next lane (seen from beside the road). Projected by its
+    height it lies beyond what is seen of the truck. Where the image between the two is the truck's body
+    throughout, the top joins the truck; where it shows road between them (two vehicles), it stays a vehicle
+    of its own."""
+    cab = (_box(-0.2, 1.2, 44.0, 46.5, 10, 51), -15.0, 2, 0, 0.0)
+    top = (_box(-1.2, -0.6, 48.0, 55.0, 8, 52), -15.0, 1, 12, 3.8)
+    seen = _run([cab, top], joined=joined)
+    assert _counted(seen) == (1 if joined else 2), {k: len(v) for k, v in seen.items()}

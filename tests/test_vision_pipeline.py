@@ -182,6 +182,23 @@ def test_two_lanes_platoon_counts(site, shaky):
         assert abs(pipe.stats["shake_px"][0] - (3 * np.sin(7 * 7.96) + 2.5 * 7.96)) < 1.0
 
 
+def test_the_pipeline_pickles_mid_run_as_a_resume_checkpoint_does(site):
+    """The service resumes from a pickled pipeline: anything unpicklable left on it (a closure kept from a
+    step) would make every checkpoint fail, and with it every resume after a restart."""
+    import pickle
+
+    pipe = VisionPipeline(site)
+    sc = _two_lane_scene(3)
+    run(pipe, sc, 2.0)
+    assert pipe.grouper.tracks, "no vehicles in view: the check would prove little"
+    clone = pickle.loads(pickle.dumps(pipe, protocol=5))
+    assert clone.grouper.tracks.keys() == pipe.grouper.tracks.keys()
+    t = 2.0
+    a = pipe.step(Frame(seq=50, t=t, wall=1767225600.0 + t, image=sc.render(t, (0.0, 0.0))))
+    b = clone.step(Frame(seq=50, t=t, wall=1767225600.0 + t, image=sc.render(t, (0.0, 0.0))))
+    assert [(v.id, v.y_front) for v in a] == [(v.id, v.y_front) for v in b]
+
+
 def test_receding_lane_and_static_markings():
     site = parse_site(site_dict(lanes=(("receding", -3.5, 0.0), ("approaching", 0.0, 3.5))))
     pipe = VisionPipeline(site)
