@@ -780,12 +780,13 @@ class Grouper:
                 else:  # camera unknown: an elevated part may lie anywhere across the vehicle's lane
                     m = FRAGMENT_X_MARGIN_NO_CAMERA_M
             lo, hi = _extent(o, other.own_length)
-            x_lo, x_hi = other.x_lo, other.x_hi
-            if (k > LEVEL_K and self.foot is not None and joined is not None
-                    and not (gy <= hi and x_lo - m <= gx <= x_hi + m) and joined(members, vid)):
-                x_lo, x_hi = min(x_lo, x_hi - ELEVATED_WIDTH_M), max(x_hi, x_lo + ELEVATED_WIDTH_M)
-                hi = max(hi, lo + 1.0 + ELEVATED_LENGTH_M + 1.0)
-            if lo <= gy <= hi and x_lo - m <= gx <= x_hi + m:
+            on = lo <= gy <= hi and other.x_lo - m <= gx <= other.x_hi + m
+            if not on and k > LEVEL_K and self.foot is not None and joined is not None:
+                x_lo = min(other.x_lo, other.x_hi - ELEVATED_WIDTH_M)
+                x_hi = max(other.x_hi, other.x_lo + ELEVATED_WIDTH_M)
+                on = (lo <= gy <= max(hi, lo + 1.0 + ELEVATED_LENGTH_M + 1.0) and x_lo - m <= gx <= x_hi + m
+                      and joined(members, vid))  # the image test last: it is the dearest
+            if on:
                 self._place = gy - o.y_front  # where on the vehicle the group lies
                 self._k = k
                 return vid
