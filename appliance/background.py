@@ -85,7 +85,8 @@ class Background:
 
     def is_joined(self, img: np.ndarray, pts: np.ndarray, other: np.ndarray) -> bool:
         """True when the image along the line between the nearest two of points pts and other differs from
-        the road throughout: the two are parts of one body (two vehicles have road between them)."""
+        the road (in MIN_JOINED_SHARE of its pixels): the two are parts of one body (two vehicles have road
+        between them)."""
         if not self.ready or len(pts) == 0 or len(other) == 0:
             return False
         d = ((pts[:, None, :] - other[None, :, :]) ** 2).sum(axis=2)

@@ -728,7 +728,7 @@ class Grouper:
 
     def _host_of(self, tr: VehicleTrack, st: VehicleState, sign: int, members: np.ndarray,  # noqa: C901
                  shadow: Callable[[np.ndarray, int], bool] | None,
-                 joined: Callable[[np.ndarray, int], bool] | None = None) -> int | None:
+                 joined: Callable[[np.ndarray, int], bool] | None) -> int | None:
         """A reported vehicle that this new group is a part of: after undoing the height magnification
         (its projected speed over the vehicle's, k >= 1) the group's near end falls inside the vehicle's
         footprint, or (an elevated part with the image between them one body) a footprint as long and wide as

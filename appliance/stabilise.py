@@ -51,6 +51,7 @@ class Stabiliser:
         # sums over the first frames k = 0, 1, ... of the line fit: 1, k, k * k, shift, k * shift
         self._n = self._sk = self._skk = 0.0
         self._sy, self._sky = np.zeros(2), np.zeros(2)
+        self._target: np.ndarray | None = None  # the fit's intercept (fixed once REST_FRAMES are in)
 
     def _pick(self, img: np.ndarray) -> list[tuple[float, float]]:
         h, w = img.shape
@@ -140,11 +141,11 @@ class Stabiliser:
             k = float(self.frames - 1)
             self._n, self._sk, self._skk = self._n + 1.0, self._sk + k, self._skk + k * k
             self._sy, self._sky = self._sy + self.raw, self._sky + k * self.raw
-        det = self._n * self._skk - self._sk ** 2
-        if self._n < REST_MIN_FRAMES or det <= 0:
-            return
-        intercept = (self._skk * self._sy - self._sk * self._sky) / det
-        self.rest += np.clip(intercept - self.rest, -REST_STEP_PX, REST_STEP_PX)
+            det = self._n * self._skk - self._sk ** 2
+            if self._n >= REST_MIN_FRAMES and det > 0:
+                self._target = (self._skk * self._sy - self._sk * self._sky) / det
+        if self._target is not None:
+            self.rest += np.clip(self._target - self.rest, -REST_STEP_PX, REST_STEP_PX)
 
     @property
     def n_ok(self) -> int:
