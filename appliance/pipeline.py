@@ -245,7 +245,9 @@ class VisionPipeline:
                 continue  # a part of another vehicle: never a vehicle of its own
             if abs(held[-1].y_front - held[0].y_front) < HOLD_MIN_TRAVEL_M:
                 continue
-            out.append(_released(held))
+            gone = _released(held)
+            self._own_points(gone, held)
+            out.append(gone)
         return out
 
     def _group_speed(self, vid: int) -> float:
@@ -259,14 +261,11 @@ class VisionPipeline:
         ok = (vy > BACKFILL_MIN_SPEED) & (tr.age[m] >= 3)
         return float(np.median(vy[ok])) if ok.any() else 0.0
 
-    def _backfill(self, v: VehicleState, held: list[VehicleState] | None = None) -> None:
-        """Extend a newly reported vehicle's trajectory back to where it entered its lane's Edie region.
-
-        Far away (small in the image) a vehicle is tracked only once it is big enough to hold features,
-        so its first points lie inside the region; it crossed the region's entry earlier. Assuming the
-        speed it has now over that stretch, the entry point is prepended (never before the first frame),
-        so Edie's d(A) and t(A) cover the whole region. Its points up to a standstill it could not have
-        moved off from (see _own_start) are dropped first: they were something static it passed."""
+    def _own_points(self, v: VehicleState, held: list[VehicleState] | None) -> tuple[list, float, float]:
+        """Drop a newly reported vehicle's leading trajectory points that were not its own: those up to a
+        standstill it could not have moved off from (see _own_start), and a first point it could not have
+        come from at anything like its speed. Both were something static it passed, which its group began
+        on. Returns its points left (the last one its state), its along-road velocity and its speed."""
         pts = list(v.trajectory or []) + [(v.t, v.x, v.y_front)]
         own = _own_start(np.array([p[0] for p in pts]), np.array([p[2] for p in pts]))
         pts = pts[own:]
@@ -287,8 +286,19 @@ class VisionPipeline:
         while len(pts) >= 2 and pts[1][0] - pts[0][0] > STALE_GAP_S \
                 and abs(pts[1][2] - pts[0][2]) < STALE_SPEED_SHARE * speed * (pts[1][0] - pts[0][0]):
             pts.pop(0)
+        v.trajectory = pts[:-1] or None
+        return pts, vy, speed
+
+    def _backfill(self, v: VehicleState, held: list[VehicleState] | None = None) -> None:
+        """Extend a newly reported vehicle's own trajectory (see _own_points) back to where it entered its
+        lane's Edie region.
+
+        Far away (small in the image) a vehicle is tracked only once it is big enough to hold features,
+        so its first points lie inside the region; it crossed the region's entry earlier. Assuming the
+        speed it has now over that stretch, the entry point is prepended (never before the first frame),
+        so Edie's d(A) and t(A) cover the whole region."""
+        pts, vy, speed = self._own_points(v, held)
         traj = pts[:-1]
-        v.trajectory = traj or None
         t0, x0, y0 = pts[0]
         lz = self.zones.lane_at_road(v.x, v.y_front) or self.zones.lane_at_road(x0, y0)
         if v.n_features < BACKFILL_MIN_FEATURES:
