@@ -10,6 +10,11 @@ import numpy as np
 from tools.simulate.presets import SceneParams
 
 
+# motion blur of a camera shaking in wind, per axis: as strong as a 2-px box (variance 0.25 px^2), but
+# centred (an even-sized box moves the image half a pixel)
+SHAKE_BLUR = np.array([0.125, 0.75, 0.125], np.float32)
+
+
 def _glare_sprite(radius: int) -> np.ndarray:
     r = np.arange(-2 * radius, 2 * radius + 1, dtype=np.float32)
     d2 = r[:, None] ** 2 + r[None, :] ** 2
@@ -83,7 +88,7 @@ class Conditions:
         if p.motion_blur and (p.night or p.dusk or self.night_factor > 0.5):
             img = cv2.blur(img, (1, 3))  # long exposure: vehicles smear along their (mostly vertical) image motion
         elif p.motion_blur and p.shake_px > 0:
-            img = cv2.blur(img, (2, 2))
+            img = cv2.sepFilter2D(img, -1, SHAKE_BLUR, SHAKE_BLUR)
         if p.auto_gain:
             m = float(cv2.mean(img[self.h // 3 :: 4, ::4])[0])
             self.gain_ema = m if self.gain_ema is None else 0.97 * self.gain_ema + 0.03 * m
