@@ -76,9 +76,11 @@ WATCH_MIN_HITS = 5  # ... and it joins after matching the vehicle in this many f
 WATCH_K_DRIFT = 0.1  # ... if its speed ratio held within this share (parts: within 2-8 %)
 WATCHING = -2  # host id meaning "still watched"
 # a reported vehicle lost short of its exit (stopped in a queue, occluded) may be found again as a new group:
-# within this long and this far of where it was lost, a new group has not entered the view (see _entered)
+# within this long, and within this far of where it could be by then, a new group has not entered the view
+# (see _entered). Lost at speed it has driven on at least as far as braking at LOST_BRAKE_MPS2 takes it.
 LOST_KEEP_S = 60.0
 REFOUND_M = 6.0
+LOST_BRAKE_MPS2 = 8.0
 RECHECK_S = 1.5  # a reported group is re-checked for being a fragment of another vehicle this long
 RECHECK_VOTES = 10  # ... and joins a vehicle only after matching it in this many frames (a frame without a
 # match is no evidence: the image's shadow test and the groups' extents flicker)
@@ -399,7 +401,7 @@ class Grouper:
         self.lights_only = False  # a night scene: vehicles seen by their lights alone (set by the pipeline)
         self.merged_now: set[int] = set()  # groups joined to another vehicle in the last step (for the pipeline's hold)
         self.recent: list[tuple[VehicleState, float, float]] = []  # finished vehicles, for their leftovers
-        self.lost: list[tuple[float, int, float]] = []  # (t, lane index, near end) of reported vehicles lost
+        self.lost: list[tuple[float, int, float, float]] = []  # (t, lane index, near end, speed) of reported vehicles lost
         cam = zones.camera  # (X, Y, height) of the camera, or None
         # only a plausible pole or overpass camera is used to undo the height magnification
         self.foot = cam if cam is not None and 3.0 <= cam[2] <= 60.0 else None
@@ -835,7 +837,7 @@ class Grouper:
         if self._qualifies_on_loss(tr):
             out.append(self._finish(tr, exited=False))
         elif tr.reported and tr.trajectory:
-            self.lost.append((t, tr.lane_index, tr.trajectory[-1][2]))
+            self.lost.append((t, tr.lane_index, tr.trajectory[-1][2], abs(tr.last.vy) if tr.last else 0.0))
 
     def _retire_quietly(self, vid: int, members: np.ndarray, retire: list[np.ndarray]) -> None:
         """End a group that is no vehicle of its own: never finalised, its held report never released (the
@@ -857,14 +859,16 @@ class Grouper:
 
     def _entered(self, tr: VehicleTrack, t: float) -> bool:
         """Whether a newly reported vehicle entered the view: first seen in its lane's detection zone, and
-        not where a reported vehicle of its lane was lost in the last LOST_KEEP_S (found again, it must not
-        count again)."""
+        not where a reported vehicle of its lane lost in the last LOST_KEEP_S could be by then (found again,
+        it must not count again)."""
         if tr.lane_index <= 0:
             return False
         lz = self.zones.by_index(tr.lane_index)
         y0 = tr.trajectory[0][2]
         self.lost = [lo for lo in self.lost if t - lo[0] <= LOST_KEEP_S]
-        near_lost = any(li == tr.lane_index and abs(y - y0) <= REFOUND_M for _, li, y in self.lost)
+        t0 = tr.trajectory[0][0]
+        near_lost = any(li == tr.lane_index and _reachable(lz.sign * (y0 - y), v, max(t0 - tl, 0.0))
+                        for tl, li, y, v in self.lost)
         return lz.detection_y[0] <= y0 <= lz.detection_y[1] and not near_lost
 
     def _link(self, a: np.ndarray, b: np.ndarray) -> None:
@@ -886,3 +890,11 @@ class Grouper:
         self.finished_total += 1
         self.recent.append((st, tr.x_lo, tr.x_hi))
         return self._grounded(replace(st, finished=True, exited=exited, trajectory=None), tr.ground)
+
+
+def _reachable(ahead: float, speed: float, dt: float) -> bool:
+    """Whether a vehicle lost dt seconds ago at this speed (m/s) can be ``ahead`` metres on from where it was
+    lost (within REFOUND_M): between where the hardest braking and holding its speed take it."""
+    stop_t = speed / LOST_BRAKE_MPS2
+    least = speed * dt - 0.5 * LOST_BRAKE_MPS2 * dt * dt if dt < stop_t else 0.5 * speed * stop_t
+    return least - REFOUND_M <= ahead <= speed * dt + REFOUND_M

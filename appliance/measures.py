@@ -29,6 +29,10 @@ MAX_EDIE_SEGMENTS = 3000  # per vehicle (2 minutes at 25 frames/s): what can be 
 ENDED_KEEP_S = LOST_AFTER_S  # an ended vehicle is kept this long for a fragment crossing its count line after it
 CARRY_SPEED_STATES = 25  # a vehicle finalised inside its region drives on at the median speed of its last states
 CARRY_MIN_SPEED = 1.0  # m/s; slower ones are not carried on
+# A counted vehicle whose first point lies this far inside its region (the pipeline extends only groups of
+# several features back to the region entry) is extended back at its speed from its first point to the count
+# line, if it entered the view there (first seen in its detection zone, not found again where one was lost)
+LATE_BACKFILL_MIN_GAP_M = 1.0
 
 
 @dataclass
@@ -73,6 +77,9 @@ class _Track:
     covered_until: float = -np.inf  # wall time its Edie segments reach
     family: int | None = None  # its family's id (the counted vehicle's) when it is one of several groups on it
     ended_wall: float | None = None
+    first_y: float = 0.0  # its first point's front position, and whether it entered the view there
+    entered: bool = False
+    covered_from: float = np.inf  # wall time its Edie segments start at (before first_wall if backfilled late)
 
 
 @dataclass
@@ -218,7 +225,8 @@ class TrafficMeasures:
         speed = abs(v.vy)
         if tr is None:
             tr = self.tracks[v.id] = _Track(v.t, v.t + offset, (v.t, v.x, v.y_front, v.y_rear, speed),
-                                            LaneHistory(), raw)
+                                            LaneHistory(), raw, first_y=v.y_front, entered=v.entered,
+                                            covered_from=v.t + offset)
             prev = None
         else:
             prev = tr.prev
@@ -295,6 +303,38 @@ class TrafficMeasures:
         self.crossings[lane_c].append(cr)
         tr.crossed.append(cr)
         out.crossings.append(cr)
+        seg = self._late_backfill(tr, lane_c, tc, offset)
+        if seg is not None:
+            self.edie.add(np.array([seg[0]]), *(np.array([c]) for c in seg[1:]))
+
+    def _late_backfill(self, tr: _Track, lane: int, tc: float, offset: float) -> tuple | None:
+        """The Edie segment from a just-counted vehicle's region entry to its first point, when it entered the
+        view well inside its region and was not extended back when first reported (the pipeline does that only
+        for groups of several features: a small one may be a part of another vehicle; counted, it is not). Its
+        speed over that stretch is its average from its first point to the count line."""
+        if not tr.entered or tr.family is not None or tc <= tr.first_t:
+            return None
+        sign = self.lanes.sign[lane]
+        ylo, yhi = self.region[lane]
+        entry = ylo if sign > 0 else yhi
+        gap = (tr.first_y - entry) * sign
+        run = (self.count_y[lane] - tr.first_y) * sign
+        if gap < LATE_BACKFILL_MIN_GAP_M or run <= 0.0:
+            return None
+        speed = run / (tc - tr.first_t)
+        w1 = tr.first_t + offset
+        w0 = w1 - gap / speed
+        if self.started_wall is not None and w0 < self.started_wall:  # inside the region when the run began
+            if w1 <= self.started_wall:
+                return None
+            w0 = self.started_wall
+            entry = tr.first_y - sign * speed * (w1 - w0)
+        tr.covered_from = min(tr.covered_from, w0)
+        seg = (lane, w0, w1, entry, tr.first_y)
+        tr.segs.appendleft(seg)
+        if self.keep_trajectories and tr.trajectory:
+            tr.trajectory.insert(0, (w0 - offset, tr.trajectory[0][1], entry))
+        return seg
 
     def _duplicate(self, vid: int, tr: _Track, other_id: int) -> None:
         """Vehicle ``vid`` is another group on vehicle ``other_id`` (their fronts crossed the count line
@@ -307,11 +347,11 @@ class TrafficMeasures:
         fam_id = other.family if other.family is not None else other_id
         fam = self.families.get(fam_id)
         if fam is None:
-            fam = self.families[fam_id] = _Family(other.first_wall, other.covered_until)
+            fam = self.families[fam_id] = _Family(other.covered_from, other.covered_until)
             other.family = fam_id
         tr.family = fam_id
         self._take_back(tr, fam.start, fam.until)
-        fam.start = min(fam.start, tr.first_wall)
+        fam.start = min(fam.start, tr.covered_from)
         fam.until = max(fam.until, tr.covered_until)
 
     def _take_back(self, tr: _Track, since: float, until: float) -> None:

@@ -435,6 +435,29 @@ def test_a_vehicle_finalised_inside_the_region_drives_on_to_its_end():
     assert time == pytest.approx(3.0, abs=0.01)
 
 
+@pytest.mark.parametrize("entered, counted", [(True, True), (False, True), (True, False)])
+def test_a_counted_vehicle_first_seen_inside_its_region_is_extended_back_to_its_entry(entered, counted):
+    """A small group (not extended back by the pipeline) first seen at y = 65.6 m, inside lane 1's region
+    (80 -> 20 m), at 20 m/s: once it crosses the count line (50 m) it has its region entry at its speed since,
+    so Edie's d(A) = 60 m and t(A) = 3 s. Not so when it was found again where another was lost (its earlier
+    stretch was that one's), nor while it has not crossed the line (it may be a part of another vehicle)."""
+    site = make_site(loops=[])
+    tm = TrafficMeasures(site)
+    tm.step(0.0, EPOCH, [])
+    end = 4.0 if counted else 1.4  # the count line is reached at 1.5 s
+    for i in range(18, int(end * 25) + 1):  # from 0.72 s
+        t = i / 25
+        y = 80.0 - 20.0 * t
+        tm.step(t, EPOCH + t, [VehicleState(3, t, -2.5, y, y + 4.5, 0, -20, 4.5, 2, entered=entered)])
+    dist, time = tm.edie.peek(EPOCH)[:, 0]
+    if entered and counted:
+        assert dist == pytest.approx(60.0, abs=0.1)
+        assert time == pytest.approx(3.0, abs=0.01)
+    else:
+        assert dist == pytest.approx(20.0 * (min(end, 3.0) - 0.72), abs=0.1)
+        assert time == pytest.approx(min(end, 3.0) - 0.72, abs=0.01)
+
+
 def test_a_group_on_a_counted_vehicle_never_takes_its_lane():
     """The second group on a vehicle (fewer features) comes first in the tracker's list, crosses the count
     line in the same frame, and then drifts over the lane line: the vehicle is counted by its own group,

@@ -334,7 +334,7 @@ def test_road_texture_uncovered_behind_a_receding_vehicle_is_not_its_near_end():
 def test_a_vehicle_found_again_where_one_was_lost_has_not_entered_the_view():
     """The `entered` flag of a first report (the measures count a vehicle entering already over its count
     line): first seen in its lane's detection zone, but not within REFOUND_M of where a reported vehicle of
-    its lane was lost in the last LOST_KEEP_S (found again, it was counted before)."""
+    its lane lost in the last LOST_KEEP_S could be by then (found again, it was counted before)."""
     from appliance.grouping import LOST_KEEP_S, REFOUND_M
 
     site = parse_site(site_dict())
@@ -344,11 +344,20 @@ def test_a_vehicle_found_again_where_one_was_lost_has_not_entered_the_view():
     y_in = 0.5 * (lz.detection_y[0] + lz.detection_y[1])
     tr = VehicleTrack(id=5, first_t=10.0, lane_index=1, trajectory=[(10.0, 0.0, y_in)])
     assert g._entered(tr, 10.0)
-    g.lost.append((9.0, 1, y_in + 0.5 * REFOUND_M))
+    g.lost.append((9.0, 1, y_in + 0.5 * REFOUND_M, 0.0))  # lost standing
     assert not g._entered(tr, 10.0)
     assert g._entered(tr, 9.0 + LOST_KEEP_S + 1.0)  # long gone
-    g.lost.append((9.0, 2, y_in))  # another lane's
+    g.lost.append((9.0, 2, y_in, 0.0))  # another lane's
     assert g._entered(tr, 10.0)
+    # lost at 25 m/s (approaching: y falls): 1 s later it is 12-25 m on, not where it was lost, and a new group
+    # there 20 m on is it found again; one lost 0.04 s before a new group is first seen 1 m on is handed over
+    sign = lz.sign
+    g.lost = [(9.0, 1, y_in, 25.0)]
+    assert g._entered(tr, 10.0)
+    g.lost = [(9.0, 1, y_in - sign * 20.0, 25.0)]
+    assert not g._entered(tr, 10.0)
+    g.lost = [(9.96, 1, y_in - sign * 1.0, 25.0)]
+    assert not g._entered(tr, 10.0)
     outside = VehicleTrack(id=6, first_t=10.0, lane_index=1, trajectory=[(10.0, 0.0, lz.exit_y[0])])
     assert not g._entered(outside, 10.0)
 
