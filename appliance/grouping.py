@@ -52,6 +52,11 @@ STALL_S = 2.0
 # lane adding time and no distance. (While some still move, the group may be clutter that a vehicle's new
 # features just joined, low in the image where it enters: they carry on as the vehicle.)
 DEAD_STOP_S = 0.2
+# ... or whose near end came to stand (within STILL_M, in the last STALL_S) straight from DEAD_NEAR_MPS over the
+# DEAD_STOP_S before, its features standing by now: braking from 8 m/s a vehicle still runs 4 m, and its next
+# lowest feature would have moved the near end on. (The features left on an occluder's edge as the vehicle
+# drove out from under it may take a second to read standing: their filter smooths the stop.)
+DEAD_NEAR_MPS = 8.0
 PASS_X_M = 1.5  # ... the vehicle passing within this much across the road
 # A new group is a fragment of a known vehicle (its elevated top or its rear, seen as a separate group)
 # when, after undoing the height magnification, its near end lies in that vehicle's footprint:
@@ -552,8 +557,8 @@ class Grouper:
             )
             if abs(vy) >= MOVING_MPS:
                 tr.fast_t = t
-            elif (tr.reported and abs(vy) <= STANDING_MPS and t - tr.fast_t <= DEAD_STOP_S
-                  and float(np.abs(s[members, 3]).max()) < MOVING_MPS):
+            elif (tr.reported and abs(vy) <= STANDING_MPS and float(np.abs(s[members, 3]).max()) < MOVING_MPS
+                  and (t - tr.fast_t <= DEAD_STOP_S or _near_end_stopped_dead(tr, t))):
                 self.tracks.pop(vid)  # stopped dead: the vehicle is lost where it last moved
                 retire.append(members)
                 self._lose(tr, t, out)
@@ -898,3 +903,18 @@ def _reachable(ahead: float, speed: float, dt: float) -> bool:
     stop_t = speed / LOST_BRAKE_MPS2
     least = speed * dt - 0.5 * LOST_BRAKE_MPS2 * dt * dt if dt < stop_t else 0.5 * speed * stop_t
     return least - REFOUND_M <= ahead <= speed * dt + REFOUND_M
+
+
+def _near_end_stopped_dead(tr: VehicleTrack, t: float) -> bool:
+    """Whether a vehicle's near end came to stand (for STILL_S, in the last STALL_S) from DEAD_NEAR_MPS or
+    more over the DEAD_STOP_S before (the median of its steps: one jump, as a lower feature appears, is no
+    speed): no vehicle stops that hard."""
+    if not STILL_S <= t - tr.still_t <= STALL_S:
+        return False
+    before = [p for p in tr.trajectory[-int(2 * (STALL_S + DEAD_STOP_S) / 0.02):]
+              if tr.still_t - DEAD_STOP_S - 1e-9 <= p[0] <= tr.still_t]
+    if len(before) < 4 or before[-1][0] != tr.still_t:
+        return False
+    tt = np.array([p[0] for p in before])
+    yy = np.array([p[2] for p in before])
+    return float(np.median(np.abs(np.diff(yy)) / np.maximum(np.diff(tt), 1e-6))) >= DEAD_NEAR_MPS

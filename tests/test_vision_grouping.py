@@ -266,6 +266,23 @@ def test_a_group_that_stops_dead_has_lost_its_vehicle_but_a_braking_car_stands(d
         assert states[-1].y_front == pytest.approx(50.0 - 18.0 - 15.0 ** 2 / 16.0, abs=0.5)
 
 
+def test_a_group_whose_features_latch_onto_an_edge_has_lost_its_vehicle():
+    """A reported car's features stop dead at 1.2 s (they latched onto an overhead sign's edge as the car drove
+    out from under it) while their filtered speeds fall off slowly (15 m/s, halving every 0.2 s): the group
+    reads standing only at 2.0 s, too late for the features' own fall (DEAD_STOP_S). Its near end stood from
+    15 m/s at once, which no vehicle does: it is lost, not kept standing in its lane adding time to Edie."""
+    def latched(t: float) -> tuple[float, float]:
+        if t < 1.2:
+            return -15.0 * t, -15.0
+        return -15.0 * 1.2, -15.0 * 0.5 ** ((t - 1.2) / 0.2)
+
+    car = (_box(-1.0, 1.0, 50.0, 54.5, 10, 41), latched, 2, 0, 0.0)
+    seen = _run([car], frames=100)
+    assert len(seen) == 1, {k: len(v) for k, v in seen.items()}
+    states = seen[min(seen)]
+    assert 1.6 < states[-1].t <= 2.2 and states[-1].finished and not states[-1].exited, states[-1]
+
+
 def test_a_vehicle_passing_a_standing_feature_is_never_grouped_with_it():
     """A corner left standing on an overhead sign's edge (settled, not moving) must not join the next
     vehicle that emerges beside it: features first seen together link when they are close, and this one
