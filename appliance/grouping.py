@@ -406,7 +406,8 @@ class Grouper:
         self.lights_only = False  # a night scene: vehicles seen by their lights alone (set by the pipeline)
         self.merged_now: set[int] = set()  # groups joined to another vehicle in the last step (for the pipeline's hold)
         self.recent: list[tuple[VehicleState, float, float]] = []  # finished vehicles, for their leftovers
-        self.lost: list[tuple[float, int, float, float]] = []  # (t, lane index, near end, speed) of reported vehicles lost
+        # (t, lane index, near end, speed) of reported vehicles lost
+        self.lost: list[tuple[float, int, float, float]] = []
         cam = zones.camera  # (X, Y, height) of the camera, or None
         # only a plausible pole or overpass camera is used to undo the height magnification
         self.foot = cam if cam is not None and 3.0 <= cam[2] <= 60.0 else None
@@ -911,10 +912,14 @@ def _near_end_stopped_dead(tr: VehicleTrack, t: float) -> bool:
     speed): no vehicle stops that hard."""
     if not STILL_S <= t - tr.still_t <= STALL_S:
         return False
-    before = [p for p in tr.trajectory[-int(2 * (STALL_S + DEAD_STOP_S) / 0.02):]
-              if tr.still_t - DEAD_STOP_S - 1e-9 <= p[0] <= tr.still_t]
-    if len(before) < 4 or before[-1][0] != tr.still_t:
+    before = []  # its points over the DEAD_STOP_S up to the stand, latest first
+    for p in reversed(tr.trajectory):
+        if p[0] < tr.still_t - DEAD_STOP_S - 1e-9:
+            break
+        if p[0] <= tr.still_t:
+            before.append(p)
+    if len(before) < 4 or before[0][0] != tr.still_t:
         return False
-    tt = np.array([p[0] for p in before])
-    yy = np.array([p[2] for p in before])
+    tt = np.array([p[0] for p in before[::-1]])
+    yy = np.array([p[2] for p in before[::-1]])
     return float(np.median(np.abs(np.diff(yy)) / np.maximum(np.diff(tt), 1e-6))) >= DEAD_NEAR_MPS

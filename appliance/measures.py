@@ -331,7 +331,8 @@ class TrafficMeasures:
             entry = tr.first_y - sign * speed * (w1 - w0)
         tr.covered_from = min(tr.covered_from, w0)
         seg = (lane, w0, w1, entry, tr.first_y)
-        tr.segs.appendleft(seg)
+        if len(tr.segs) < MAX_EDIE_SEGMENTS:  # (a full deque would drop its latest segment for it)
+            tr.segs.appendleft(seg)
         if self.keep_trajectories and tr.trajectory:
             tr.trajectory.insert(0, (w0 - offset, tr.trajectory[0][1], entry))
         return seg

@@ -416,21 +416,25 @@ def test_hold_releases_moving_vehicles_and_drops_stuck_groups():
     assert all(v.trajectory is None for v in released[1:])
 
 
+def _car_at(t: float, t0: float, first: list | None = None):
+    """Vehicle 2's state at t: approaching at 20 m/s from 60 m at t0, with earlier points ``first``."""
+    from appliance.types import VehicleState
+
+    y = 60.0 - 20.0 * (t - t0)
+    return VehicleState(id=2, t=t, x=-1.75, y_front=y, y_rear=y + 4.5, vx=0.0, vy=-20.0, length=4.5, n_features=6,
+                        trajectory=first)
+
+
 def test_a_group_lost_while_held_goes_out_without_the_static_point_it_began_on():
     """A group that began on something static (a feature standing 3 s at the top of the detection zone) which
     a vehicle's features joined, lost 0.3 s later while its report was held, goes out as observed (a line it
     crossed meanwhile still counts) but without the standing point: 3 s of standing is no vehicle's time in
     Edie's t(A), and it would read the lane's speed low."""
-    from appliance.types import VehicleState
-
     pipe = VisionPipeline(parse_site(site_dict()))
     pipe.first_t = 0.0
     released = []
     for k in range(10):
-        t = 4.0 + 0.04 * k
-        y = 60.0 - 20.0 * (t - 4.0)
-        states = [VehicleState(id=2, t=t, x=-1.75, y_front=y, y_rear=y + 4.5, vx=0.0, vy=-20.0, length=4.5,
-                               n_features=6, trajectory=[(1.0, -1.75, 60.3)] if k == 0 else None)] if k < 8 else []
+        states = [_car_at(4.0 + 0.04 * k, 4.0, [(1.0, -1.75, 60.3)] if k == 0 else None)] if k < 8 else []
         released += pipe._hold_new(states)
     assert [v.id for v in released] == [2]
     traj = released[0].trajectory
@@ -441,17 +445,13 @@ def test_a_group_lost_while_held_goes_out_without_the_static_point_it_began_on()
 def test_a_held_group_that_joins_another_vehicle_is_never_released():
     """A group the grouper joins to another vehicle while its first report is held (a tall vehicle's top,
     a side part) is not a vehicle: unlike a held group that is merely lost, none of its points go out."""
-    from appliance.types import VehicleState
-
     def run(merged: bool) -> list[int]:
         pipe = VisionPipeline(parse_site(site_dict()))
         pipe.first_t = 0.0
         released = []
         for k in range(8):
             t = 1.0 + 0.04 * k
-            y = 60.0 - 20.0 * (t - 1.0)
-            states = [VehicleState(id=2, t=t, x=-1.75, y_front=y, y_rear=y + 4.5, vx=0.0, vy=-20.0, length=4.5,
-                                   n_features=6, trajectory=[(t - 0.2, -1.75, y + 4.0)] if k == 0 else None)] if k < 6 else []
+            states = [_car_at(t, 1.0, [(t - 0.2, -1.75, 60.0 + 4.0)] if k == 0 else None)] if k < 6 else []
             pipe.grouper.merged_now = {2} if merged and k == 6 else set()
             released += [v.id for v in pipe._hold_new(states)]
         return released
