@@ -36,6 +36,20 @@ def clip_segments(
     return ta, tb, frac * np.abs(dy)
 
 
+def back_to_entry(t0: float, y0: float, entry: float, sign: int, speed: float, t_min: float
+                  ) -> tuple[float, float] | None:
+    """Where and when a vehicle first seen at (t0, y0), travelling in direction ``sign`` at ``speed`` (m/s),
+    crossed its region's entry: (time, position), or None when it was first seen there or beyond, or at the
+    start of the observation t_min. Never before t_min: one already inside the region then starts there."""
+    gap = (y0 - entry) * sign
+    if gap <= 0.0 or t0 - t_min <= 1e-6:
+        return None
+    t_entry = t0 - gap / speed
+    if t_entry < t_min:
+        return t_min, y0 - sign * speed * (t0 - t_min)
+    return t_entry, entry
+
+
 def edie_qkv(dist_m: float, time_s: float, length_m: float, period_s: float) -> tuple[float, float, float | None]:
     """(q veh/h, k veh/km, v km/h or None) from Edie's d(A), t(A) over a region length x period."""
     area = length_m * period_s  # m*s

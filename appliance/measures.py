@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from appliance.config import SiteConfig
-from appliance.edie import EdieAccumulator, edie_qkv
+from appliance.edie import EdieAccumulator, back_to_entry, edie_qkv
 from appliance.lanes import LaneHistory, LaneMap
 from appliance.loops import VirtualLoop, length_class
 from appliance.periods import PERIOD_TOLERANCE_S, PeriodClock
@@ -317,18 +317,15 @@ class TrafficMeasures:
         sign = self.lanes.sign[lane]
         ylo, yhi = self.region[lane]
         entry = ylo if sign > 0 else yhi
-        gap = (tr.first_y - entry) * sign
         run = (self.count_y[lane] - tr.first_y) * sign
-        if gap < LATE_BACKFILL_MIN_GAP_M or run <= 0.0:
+        if (tr.first_y - entry) * sign < LATE_BACKFILL_MIN_GAP_M or run <= 0.0:
             return None
-        speed = run / (tc - tr.first_t)
         w1 = tr.first_t + offset
-        w0 = w1 - gap / speed
-        if self.started_wall is not None and w0 < self.started_wall:  # inside the region when the run began
-            if w1 <= self.started_wall:
-                return None
-            w0 = self.started_wall
-            entry = tr.first_y - sign * speed * (w1 - w0)
+        start = back_to_entry(w1, tr.first_y, entry, sign, run / (tc - tr.first_t),
+                              self.started_wall if self.started_wall is not None else -np.inf)
+        if start is None:
+            return None
+        w0, entry = start
         tr.covered_from = min(tr.covered_from, w0)
         seg = (lane, w0, w1, entry, tr.first_y)
         if len(tr.segs) < MAX_EDIE_SEGMENTS:  # (a full deque would drop its latest segment for it)

@@ -15,6 +15,7 @@ import numpy as np
 from appliance.background import Background
 from appliance.config import SiteConfig
 from appliance.corners import CornerDetector
+from appliance.edie import back_to_entry
 from appliance.grouping import RECHECK_S, SETTLED_AGE, STILL_M, STILL_S, Grouper
 from appliance.stabilise import Stabiliser
 from appliance.tracker import FeatureTracker
@@ -305,17 +306,13 @@ class VisionPipeline:
             return  # a few features only: likely a fragment of another vehicle, not extended
         if lz is None or vy * lz.sign < BACKFILL_MIN_SPEED or speed < BACKFILL_MIN_SPEED or self.first_t is None:
             return
-        entry = lz.region_y[1] if lz.sign < 0 else lz.region_y[0]
-        gap = (y0 - entry) * lz.sign  # metres between the entry and the first point, along travel
-        if gap <= 0.0 or (y0 - lz.count_y) * lz.sign > 0.0:
-            return  # nothing to add; or first seen past the count line: the backfill must not make a count
-        t_entry = t0 - gap / speed
-        if t_entry < self.first_t:  # already inside the region when the video started
-            if t0 - self.first_t <= 1e-6:
-                return
-            t_entry = self.first_t
-            entry = y0 - lz.sign * speed * (t0 - t_entry)
-        v.trajectory = [(t_entry, x0, entry)] + list(traj)
+        if (y0 - lz.count_y) * lz.sign > 0.0:
+            return  # first seen past the count line: the backfill must not make a count
+        entry = back_to_entry(t0, y0, lz.region_y[1] if lz.sign < 0 else lz.region_y[0], lz.sign, speed,
+                              self.first_t)
+        if entry is None:
+            return
+        v.trajectory = [(entry[0], x0, entry[1])] + list(traj)
         self.stats["backfilled"] = self.stats.get("backfilled", 0) + 1
 
     def _drop_features(self, t: float) -> None:
