@@ -124,9 +124,11 @@ SIDE_MAX_WIDTH_M = 3.5  # joint footprint width (two cars side by side span >= 5
 # ... wider when the new group is only a shadow on the road (the image test says so): cast sideways by a
 # low sun it reaches a lane or more across, starting a little behind or ahead of the vehicle
 SHADOW_MAX_WIDTH_M = 9.0
-SHADOW_GAP_M = 4.0
+SHADOW_GAP_M = 6.0  # its features lie on its far edge (a car's shadow seen 4.4 m from its side), the image test
+# sees the road between the two shadowed
 SHADOW_DY_M = 6.0
 SHADOW_SPEED_TOL = 0.3  # a new group's features have not settled to its speed yet
+SIDE_LATE_HOST_K = 2.0  # a flank reported before its vehicle joins it if the vehicle has this many times its features
 # A group that the image test finds to be only a shadow on the road in most frames of its first watch
 # (its caster may be lanes away under a low sun, or out of view) is no vehicle: it is retired unreported.
 # It is judged before its first report is released (pipeline.HOLD_S), whatever the frame rate:
@@ -805,7 +807,8 @@ class Grouper:
         """A vehicle in a neighbouring lane of the same direction whose side part this group is: same
         speed, near ends level, and either a receding vehicle's flank (joint footprint no wider than one
         vehicle) or only a shadow on the road (the image says so). A reported group is compared by its
-        speed over a while and only with a vehicle reported before it; sets self._place for the votes."""
+        speed over a while, and with a vehicle reported after it only as its shadow or a much smaller flank
+        (a receding vehicle's shadow cast ahead of it enters the view first); sets self._place for the votes."""
         for vid, other in self.tracks.items():
             o = other.last
             if vid == tr.id or o is None or o.t != st.t or other.lane_index == tr.lane_index:
@@ -814,8 +817,11 @@ class Grouper:
                 continue
             if not other.reported and (other.first_t > tr.first_t or other.n_max < self.p.min_features):
                 continue
-            if tr.reported and (not other.reported or other.report_t > tr.report_t):
+            if tr.reported and not other.reported:
                 continue
+            # a part reported before its vehicle: its shadow, or its flank if the vehicle is much the bigger
+            late = tr.reported and other.report_t > tr.report_t
+            flank = not late or other.n_now >= SIDE_LATE_HOST_K * tr.n_now
             ov = other.steady_vy(o.vy) if tr.reported else o.vy
             if ov * vy <= 0:
                 continue
@@ -826,7 +832,7 @@ class Grouper:
                 continue
             gap = max(tr.x_lo - other.x_hi, other.x_lo - tr.x_hi)
             width = max(tr.x_hi, other.x_hi) - min(tr.x_lo, other.x_lo)
-            if sign > 0 and gap <= SIDE_GAP_M and width <= SIDE_MAX_WIDTH_M:
+            if flank and sign > 0 and gap <= SIDE_GAP_M and width <= SIDE_MAX_WIDTH_M:
                 if dy <= SIDE_DY_M and dv <= SIDE_SPEED_TOL:
                     return vid
                 # a reported part is watched longer (the votes): anywhere along the vehicle, speeds less sure

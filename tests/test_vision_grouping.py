@@ -17,10 +17,11 @@ SETTLING = 0.6
 
 
 def _run(objects: list[tuple[np.ndarray, float, int, int]], frames: int = 90, lanes=None,
-         shadow_seen=None, night: bool = False, joined: bool | None = None) -> dict[int, list]:
+         shadow_seen=None, night: bool = False, joined: bool | None = None, shadow_at=None) -> dict[int, list]:
     """objects: (ground points (n, 2) at t=0, speed along Y, lane, first frame seen, height above road).
-    shadow_seen(frame): what the image's shadow test answers in that frame (default: no image test); joined:
-    what the image test of two groups being one body answers (default: no image test)."""
+    shadow_seen(frame): what the image's shadow test answers in that frame (default: no image test), for any
+    points or only for a caster's shadow where shadow_at(image points) holds; joined: what the image test of
+    two groups being one body answers (default: no image test)."""
     site = parse_site(site_dict() if lanes is None else site_dict(lanes=lanes))
     zones = SiteZones(site)
     cx, cy, ch = zones.camera
@@ -52,7 +53,8 @@ def _run(objects: list[tuple[np.ndarray, float, int, int]], frames: int = 90, la
                     alive[slot] = True
                     age[slot] = f - first
                 slot += 1
-        is_shadow = None if shadow_seen is None else (lambda pts, caster, f=f: shadow_seen(f))
+        is_shadow = None if shadow_seen is None else (
+            lambda pts, caster, f=f: shadow_seen(f) and (shadow_at is None or (caster is not None and shadow_at(pts))))
         is_joined = None if joined is None else (lambda a, b: joined)
         states, retire = g.step(t, s, px, lane, alive, age, is_shadow, is_joined)
         alive[retire] = False
@@ -132,17 +134,20 @@ def test_at_night_a_motorcycle_seen_by_three_features_counts_but_a_truck_s_three
     assert _counted(_run([truck, top], night=True)) == 1
 
 
-def test_a_shadow_the_image_test_sees_in_two_frames_of_three_joins_its_vehicle():
+@pytest.mark.parametrize("gap_m", [2.8, 4.5])
+def test_a_shadow_the_image_test_sees_in_two_frames_of_three_joins_its_vehicle(gap_m):
     """A car's shadow on the next lane is tracked as a group of its own, level with the car and at its speed.
     The image's shadow test says so only from 0.4 s on, when the group is reported already, and then misses
     every third frame (the shadow's box catches some of the caster or a lane marking): the group still joins
-    the car, where matching it in ten frames in a row never came."""
+    the car, where matching it in ten frames in a row never came. Under a low sun the features seen on the
+    shadow lie on its far edge, 4.5 m from the car's side."""
+    lanes = (("approaching", -5.0, 0.0), ("approaching", 0.0, 5.0))
     car = (_box(0.6, 2.4, 52.0, 56.0, 10, 41), -12.0, 2, 0, 0.0)
-    shade = (_box(-3.4, -2.2, 53.0, 57.0, 8, 42), -12.0, 1, 0, 0.0)
-    seen = _run([car, shade], frames=80, shadow_seen=lambda f: f >= 10 and f % 3 != 0)
+    shade = (_box(0.6 - gap_m - 1.2, 0.6 - gap_m, 53.0, 57.0, 8, 42), -12.0, 1, 0, 0.0)
+    seen = _run([car, shade], frames=80, lanes=lanes, shadow_seen=lambda f: f >= 10 and f % 3 != 0)
     assert _counted(seen) == 1, {k: len(v) for k, v in seen.items()}
     # with no image test passing, the two are two vehicles (two cars side by side look just the same)
-    assert _counted(_run([car, shade], frames=80, shadow_seen=lambda f: False)) == 2
+    assert _counted(_run([car, shade], frames=80, lanes=lanes, shadow_seen=lambda f: False)) == 2
 
 
 @pytest.mark.parametrize("dragged_m", [0.0, 1.2])
@@ -214,6 +219,30 @@ def test_a_receding_vehicles_side_part_in_the_next_lane_joins_it_once_watched():
     assert _counted(_run([car, side], lanes=lanes), receding=True) == 1
     beside = (_box(-2.6, -0.9, 12.6, 17.1, 10, 9), 10.0, 1, 12, 0.0)
     assert _counted(_run([car, beside], lanes=lanes), receding=True) == 2
+
+
+@pytest.mark.parametrize("part", ["shadow", "flank"])
+def test_a_part_seen_before_its_receding_vehicle_joins_the_vehicle_reported_after_it(part):
+    """A receding vehicle enters the view at the image bottom, and its shadow cast ahead of it into the next
+    lane (or its flank there) may come into view first, to be reported as a group of its own before the
+    vehicle's is. Once the image test finds the first group to be the vehicle's shadow (or, a flank, it keeps
+    its place beside a vehicle of many times its features), it joins that vehicle: one count. With no image
+    test passing, a shadow-sized group a lane line away is a second vehicle; so is a flank-sized one as big
+    as the vehicle (two vehicles side by side look just the same)."""
+    lanes = (("receding", -3.5, 0.0), ("receding", 0.0, 3.5))
+    car = (_box(0.4, 2.2, 10.0, 14.5, 12, 21), 10.0, 2, 8, 0.0)  # seen from frame 8
+    if part == "shadow":
+        first = (_box(-2.8, -1.2, 13.0, 16.0, 5, 22), 10.0, 1, 0, 0.0)
+        on_shadow = lambda pts: bool(np.all(pts[:, 0] < 0.0))  # noqa: E731 (the car is no shadow)
+        seen = _run([car, first], lanes=lanes, shadow_seen=lambda f: f >= 14, shadow_at=on_shadow)
+        assert _counted(seen, receding=True) == 1, {k: (v[0].t, v[-1].t) for k, v in seen.items()}
+        seen = _run([car, first], lanes=lanes, shadow_seen=lambda f: False)
+    else:
+        first = (_box(-0.5, -0.2, 12.6, 13.6, 5, 22), 10.0, 1, 0, 0.0)
+        seen = _run([car, first], lanes=lanes)
+        assert _counted(seen, receding=True) == 1, {k: (v[0].t, v[-1].t) for k, v in seen.items()}
+        seen = _run([car, (_box(-0.5, -0.2, 12.6, 13.6, 8, 22), 10.0, 1, 0, 0.0)], lanes=lanes)
+    assert _counted(seen, receding=True) == 2
 
 
 def test_a_still_group_that_a_vehicle_drives_through_is_dropped():
