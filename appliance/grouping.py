@@ -124,8 +124,9 @@ SIDE_MAX_WIDTH_M = 3.5  # joint footprint width (two cars side by side span >= 5
 # ... wider when the new group is only a shadow on the road (the image test says so): cast sideways by a
 # low sun it reaches a lane or more across, starting a little behind or ahead of the vehicle
 SHADOW_MAX_WIDTH_M = 9.0
-SHADOW_GAP_M = 6.0  # its features lie on its far edge (a car's shadow seen 4.4 m from its side), the image test
-# sees the road between the two shadowed
+# (the features seen on a long shadow lie on its far edge, 4-5 m from its caster's side; the image test then
+# checks that the road between the two is shadowed too)
+SHADOW_GAP_M = 6.0
 SHADOW_DY_M = 6.0
 SHADOW_SPEED_TOL = 0.3  # a new group's features have not settled to its speed yet
 SIDE_LATE_HOST_K = 2.0  # a flank reported before its vehicle joins it if the vehicle has this many times its features

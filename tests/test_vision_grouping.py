@@ -233,8 +233,8 @@ def test_a_part_seen_before_its_receding_vehicle_joins_the_vehicle_reported_afte
     car = (_box(0.4, 2.2, 10.0, 14.5, 12, 21), 10.0, 2, 8, 0.0)  # seen from frame 8
     if part == "shadow":
         first = (_box(-2.8, -1.2, 13.0, 16.0, 5, 22), 10.0, 1, 0, 0.0)
-        on_shadow = lambda pts: bool(np.all(pts[:, 0] < 0.0))  # noqa: E731 (the car is no shadow)
-        seen = _run([car, first], lanes=lanes, shadow_seen=lambda f: f >= 14, shadow_at=on_shadow)
+        seen = _run([car, first], lanes=lanes, shadow_seen=lambda f: f >= 14,
+                    shadow_at=lambda pts: bool(np.all(pts[:, 0] < 0.0)))  # the car's own points are no shadow
         assert _counted(seen, receding=True) == 1, {k: (v[0].t, v[-1].t) for k, v in seen.items()}
         seen = _run([car, first], lanes=lanes, shadow_seen=lambda f: False)
     else:
