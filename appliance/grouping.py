@@ -282,6 +282,120 @@ def components(live, state, labels):
 
 
 @njit(cache=True)
+def assign_ids(live, labels, fvid, next_vid, order, starts, vids):
+    """Vehicle ids for the components (labels) over the live slots, biggest component first (ties: lower
+    label first): each keeps the id most of its features had (fewest-numbered among equals) unless a bigger
+    one took it, else gets a new one. Fills order (the live slots grouped by component, biggest first),
+    starts (each component's first index in order, then the end) and vids (each component's id), updates
+    fvid; returns (components, next_vid)."""
+    n = live.shape[0]
+    if n == 0:
+        starts[0] = 0
+        return 0, next_vid
+    lab = labels[live]
+    srt = np.argsort(lab, kind="mergesort")
+    ng = 1
+    for a in range(1, n):
+        if lab[srt[a]] != lab[srt[a - 1]]:
+            ng += 1
+    g0 = np.empty(ng + 1, np.int64)
+    g = 0
+    g0[0] = 0
+    for a in range(1, n):
+        if lab[srt[a]] != lab[srt[a - 1]]:
+            g += 1
+            g0[g] = a
+    g0[ng] = n
+    size = g0[1:] - g0[:-1]
+    by_size = np.argsort(-size, kind="mergesort")
+    pos = 0
+    cand = np.empty(n, np.int64)
+    for r in range(ng):
+        c = by_size[r]
+        starts[r] = pos
+        m = 0
+        for a in range(g0[c], g0[c + 1]):
+            slot = live[srt[a]]
+            order[pos] = slot
+            pos += 1
+            if fvid[slot] >= 0:
+                cand[m] = fvid[slot]
+                m += 1
+        vid = -1
+        if m:
+            u = np.sort(cand[:m])
+            best_n = 0
+            a = 0
+            while a < m:  # runs of equal ids, in increasing id order: the most frequent unclaimed one
+                b = a
+                while b < m and u[b] == u[a]:
+                    b += 1
+                if b - a > best_n:
+                    taken = False
+                    for q in range(r):
+                        if vids[q] == u[a]:
+                            taken = True
+                            break
+                    if not taken:
+                        vid = u[a]
+                        best_n = b - a
+                a = b
+        if vid < 0:
+            vid = next_vid
+            next_vid += 1
+        vids[r] = vid
+        for a in range(starts[r], pos):
+            fvid[order[a]] = vid
+    starts[ng] = pos
+    return ng, next_vid
+
+
+@njit(cache=True)
+def fit_places(members, age, s, fit, fit_vid, vid, d, cy, k_max, frames, min_var, neighbour):
+    """Add this frame to the straight-line fits (see Grouper._ground_length) of a group's settled features
+    against its near end, d from the camera's foot along the road (a fit made for another group starts
+    afresh). Returns how far behind the near end the group's far end lies on the road: the furthest fitted
+    feature with another within ``neighbour``, else their median; NaN while none is fitted, or while one not
+    yet fitted lies further (a fragment that just joined)."""
+    places = np.empty(members.shape[0])
+    n_ok = 0
+    q_ok = -np.inf
+    q_new = -np.inf
+    for a in range(members.shape[0]):
+        i = members[a]
+        if age[i] < 3:
+            continue
+        if fit_vid[i] != vid:
+            for c in range(5):
+                fit[i, c] = 0.0
+            fit_vid[i] = vid
+        q = s[i, 1] - cy
+        fit[i, 0] += 1.0
+        fit[i, 1] += d
+        fit[i, 2] += q
+        fit[i, 3] += d * d
+        fit[i, 4] += d * q
+        n = fit[i, 0]
+        var = fit[i, 3] / n - (fit[i, 1] / n) ** 2
+        if n >= frames and var >= min_var:
+            cov = fit[i, 4] / n - fit[i, 1] * fit[i, 2] / (n * n)
+            k = min(max(cov / var, 1.0), k_max)
+            places[n_ok] = fit[i, 2] / n / k - fit[i, 1] / n
+            n_ok += 1
+            q_ok = max(q_ok, q)
+        else:
+            q_new = max(q_new, q)
+    if n_ok == 0 or q_new > q_ok:
+        return np.nan
+    p = np.sort(places[:n_ok])
+    for a in range(n_ok - 1, 0, -1):
+        if p[a] - p[a - 1] <= neighbour:
+            return p[a]
+    h = n_ok // 2
+    return p[h] if n_ok % 2 else (p[h - 1] + p[h]) / 2.0
+
+
+@njit(cache=True)
 def _root(parent, a):
     while parent[a] != a:
         a = parent[a]
@@ -448,32 +562,10 @@ class Grouper:
             components(live, self.state, self.labels)
 
     def _assign_ids(self, live: np.ndarray) -> dict[int, np.ndarray]:
-        labels = self.labels[live]
-        order = np.argsort(labels, kind="stable")
-        sl, sv = labels[order], live[order]
-        cuts = np.flatnonzero(np.diff(sl)) + 1
-        groups = np.split(sv, cuts)
-        groups.sort(key=len, reverse=True)
-        claimed: dict[int, np.ndarray] = {}
-        for members in groups:
-            vids = self.fvid[members]
-            vids = vids[vids >= 0]
-            vid = -1
-            if len(vids) and vids.min() == vids.max():  # the common case: one id already
-                if int(vids[0]) not in claimed:
-                    vid = int(vids[0])
-            elif len(vids):
-                u, c = np.unique(vids, return_counts=True)
-                for k in np.lexsort((u, -c)):
-                    if int(u[k]) not in claimed:
-                        vid = int(u[k])
-                        break
-            if vid < 0:
-                vid = self.next_vid
-                self.next_vid += 1
-            self.fvid[members] = vid
-            claimed[vid] = members
-        return claimed
+        n = len(live)
+        order, starts, vids = np.empty(n, np.int64), np.empty(n + 1, np.int64), np.empty(n, np.int64)
+        ng, self.next_vid = assign_ids(live, self.labels, self.fvid, self.next_vid, order, starts, vids)
+        return {int(vids[r]): order[starts[r]:starts[r + 1]] for r in range(ng)}
 
     def step(self, t: float, s: np.ndarray, px: np.ndarray, lane: np.ndarray, alive: np.ndarray, age: np.ndarray,
              is_shadow: Callable[[np.ndarray, np.ndarray | None], bool] | None = None,
@@ -696,28 +788,10 @@ class Grouper:
             # a receding vehicle is seen best as it enters, nearest the camera; its far end moves with it
             # from then on (a length that kept changing would add distance or time it did not travel)
             return tr.ground[0]
-        cy = self.foot[1]
-        m = members[age[members] >= 3]
-        fit = self.fit
-        stale = self.fit_vid[m] != tr.id  # new in this group: a fit against another near end does not hold
-        fit[m[stale]] = 0.0
-        self.fit_vid[m[stale]] = tr.id
-        d, q = near_y - cy, s[m, 1] - cy
-        fit[m] += np.stack([np.ones_like(q), np.full_like(q, d), q, np.full_like(q, d * d), d * q], axis=1)
-        f = fit[m]
-        n = f[:, 0]
-        var = f[:, 3] / n - (f[:, 1] / n) ** 2
-        cov = f[:, 4] / n - f[:, 1] * f[:, 2] / (n * n)
-        ok = (n >= FIT_FRAMES) & (var >= FIT_TRAVEL_SD_M ** 2)
-        # until some are fitted, or while features not yet fitted lie further (a fragment that just joined):
-        # the last length, or at first the features' span
-        if not ok.any() or q[~ok].max(initial=-np.inf) > q[ok].max():
+        behind = fit_places(members, age, s, self.fit, self.fit_vid, tr.id, near_y - self.foot[1], self.foot[1],
+                            self.k_max, FIT_FRAMES, FIT_TRAVEL_SD_M ** 2, FIT_NEIGHBOUR_M)
+        if np.isnan(behind):  # until some are fitted: the last length, or at first the features' span
             return tr.ground[0] if tr.ground else length
-        f, n = f[ok], n[ok]
-        k = np.clip(cov[ok] / var[ok], 1.0, self.k_max)
-        places = np.sort(f[:, 2] / n / k - f[:, 1] / n)  # on the road, behind the near end
-        close = np.diff(places) <= FIT_NEIGHBOUR_M
-        behind = float(places[1:][close][-1]) if close.any() else _median(places)
         tr.fitted = True
         if behind < FIT_MIN_EXTENT_M:
             return NOMINAL_LENGTH_M

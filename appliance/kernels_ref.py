@@ -172,3 +172,46 @@ def components_ref(live, state) -> dict[int, int]:
             joined[h] += [c]
     top = bfs(joined, sorted(joined))
     return {i: top[part[i]] for i in live}
+
+
+def assign_ids_ref(live, labels, fvid, next_vid) -> tuple[dict[int, np.ndarray], int]:
+    """vid -> member slots, biggest component first (ties: lower label), and the next free id: each component
+    keeps its members' most frequent unclaimed id (ties: the lower), else gets a new one. Updates fvid."""
+    lab = labels[live]
+    order = np.argsort(lab, kind="stable")
+    sl, sv = lab[order], live[order]
+    groups = np.split(sv, np.flatnonzero(np.diff(sl)) + 1)
+    groups.sort(key=len, reverse=True)
+    claimed: dict[int, np.ndarray] = {}
+    for members in groups:
+        vids = fvid[members]
+        u, c = np.unique(vids[vids >= 0], return_counts=True)
+        free = [k for k in np.lexsort((u, -c)) if int(u[k]) not in claimed]
+        if free:
+            vid = int(u[free[0]])
+        else:
+            vid, next_vid = next_vid, next_vid + 1
+        fvid[members] = vid
+        claimed[vid] = members
+    return claimed, next_vid
+
+
+def fit_places_ref(members, age, s, fit, fit_vid, vid, d, cy, k_max, frames, min_var, neighbour) -> float:
+    """Same contract as grouping.fit_places, vectorised over the group's features."""
+    m = members[age[members] >= 3]
+    stale = fit_vid[m] != vid
+    fit[m[stale]] = 0.0
+    fit_vid[m[stale]] = vid
+    q = s[m, 1] - cy
+    fit[m] += np.stack([np.ones_like(q), np.full_like(q, d), q, np.full_like(q, d * d), d * q], axis=1)
+    f = fit[m]
+    n = f[:, 0]
+    var = f[:, 3] / n - (f[:, 1] / n) ** 2
+    cov = f[:, 4] / n - f[:, 1] * f[:, 2] / (n * n)
+    ok = (n >= frames) & (var >= min_var)
+    if not ok.any() or q[~ok].max(initial=-np.inf) > q[ok].max():
+        return float("nan")
+    k = np.clip(cov[ok] / var[ok], 1.0, k_max)
+    places = np.sort(f[ok, 2] / n[ok] / k - f[ok, 1] / n[ok])
+    close = np.diff(places) <= neighbour
+    return float(places[1:][close][-1]) if close.any() else float(np.median(places))

@@ -108,7 +108,7 @@ class VisionPipeline:
     def warmup(self) -> None:
         """Compile (or load from cache) every numba kernel on dummy data, leaving no state behind."""
         from appliance.corners import select_spaced
-        from appliance.grouping import components, isolate, pair_update, unbridge
+        from appliance.grouping import assign_ids, components, fit_places, isolate, pair_update, unbridge
         from appliance.tracker import init_features, track_step
 
         p = self.p
@@ -135,6 +135,9 @@ class VisionPipeline:
         owner = np.array([-1, 1, 2, -1], np.int64)
         kept = unbridge(live[:1], live, owner, s, state)
         isolate(live[:1], kept, live, owner, state)
+        labels, vids = np.zeros(n, np.int64), np.full(n, -1, np.int64)
+        assign_ids(live, labels, vids, 1, np.empty(n, np.int64), np.empty(n + 1, np.int64), np.empty(n, np.int64))
+        fit_places(live, np.full(n, 3, np.int32), s, np.zeros((n, 5)), vids, 1, 10.0, 0.0, 1.5, 10, 2.25, 1.0)
 
     # ------------------------------------------------------------------------------------------
     def _check_frame(self, frame: Frame) -> np.ndarray:

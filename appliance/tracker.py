@@ -18,27 +18,6 @@ def _project(M, u, v):
 
 
 @njit(cache=True)
-def ncc_at(img, tmpl, cx, cy):
-    """NCC of a zero-mean unit-norm template with the image patch centred at integer (cx, cy)."""
-    h = tmpl.shape[0] // 2
-    n = tmpl.shape[0] * tmpl.shape[1]
-    sp = 0.0
-    spp = 0.0
-    spt = 0.0
-    for j in range(tmpl.shape[0]):
-        row = cy - h + j
-        for i in range(tmpl.shape[1]):
-            p = float(img[row, cx - h + i])
-            sp += p
-            spp += p * p
-            spt += p * tmpl[j, i]
-    var = spp - sp * sp / n
-    if var < 1e-6:
-        return -1.0
-    return spt / np.sqrt(var)
-
-
-@njit(cache=True)
 def extract_template(img, cx, cy, out):
     """Zero-mean, unit-norm patch around integer (cx, cy) into out; returns False on a flat patch."""
     h = out.shape[0] // 2
@@ -104,6 +83,9 @@ def track_step(img, Hm, Hinv, off_x, off_y, dt, alive, px, s, P, tmpl, age, miss
     q22 = q_acc * q_acc * dt2
     matched = 0
     scores = np.empty((3 * radius + 3, 3 * radius + 3))
+    nT = float(T * T)
+    sum1 = np.zeros((3 * radius + 4 + T, 3 * radius + 4 + T))  # running sums of the search window and its squares
+    sum2 = np.zeros((3 * radius + 4 + T, 3 * radius + 4 + T))
     for i in range(alive.shape[0]):
         if not alive[i]:
             continue
@@ -143,14 +125,41 @@ def track_step(img, Hm, Hinv, off_x, off_y, dt, alive, px, s, P, tmpl, age, miss
                 or cx + r + h + 1 >= wid or cy + r + h + 1 >= hgt:
             alive[i] = False
             continue
-        # --- NCC search ---
+        # --- NCC search: normalised correlation of the zero-mean unit-norm template with each patch. The
+        # patches' sums come from running sums over the window (integer grey levels: exact, so the same as
+        # summing patch by patch) ---
+        W = 2 * (r + h) + 1
+        x0 = cx - r - h
+        y0 = cy - r - h
+        for j in range(W):
+            rs = 0.0
+            rss = 0.0
+            for c in range(W):
+                p = float(img[y0 + j, x0 + c])
+                rs += p
+                rss += p * p
+                sum1[j + 1, c + 1] = sum1[j, c + 1] + rs
+                sum2[j + 1, c + 1] = sum2[j, c + 1] + rss
+        tm = tmpl[i]
         best = -2.0
         bx = 0
         by = 0
         for dy in range(-r, r + 1):
+            a = dy + r
             for dx in range(-r, r + 1):
-                c = ncc_at(img, tmpl[i], cx + dx, cy + dy)
-                scores[dy + r, dx + r] = c
+                b = dx + r
+                sp = sum1[a + T, b + T] - sum1[a, b + T] - sum1[a + T, b] + sum1[a, b]
+                spp = sum2[a + T, b + T] - sum2[a, b + T] - sum2[a + T, b] + sum2[a, b]
+                var = spp - sp * sp / nT
+                c = -1.0
+                if var >= 1e-6:
+                    spt = 0.0
+                    for j in range(T):
+                        row = y0 + a + j
+                        for q in range(T):
+                            spt += float(img[row, x0 + b + q]) * tm[j, q]
+                    c = spt / np.sqrt(var)
+                scores[a, b] = c
                 if c > best:
                     best = c
                     bx = dx
