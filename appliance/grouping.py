@@ -396,6 +396,51 @@ def fit_places(members, age, s, fit, fit_vid, vid, d, cy, k_max, frames, min_var
 
 
 @njit(cache=True)
+def _median_of(a):
+    a = np.sort(a)
+    n = a.shape[0]
+    return a[n // 2] if n % 2 else (a[n // 2 - 1] + a[n // 2]) / 2.0
+
+
+@njit(cache=True)
+def group_summary(members, s, px, age, near_m, moving, standing):
+    """One group's moving body and near end: its features without those standing still (below ``standing``
+    while their median moves above ``moving``: road texture just uncovered beside a vehicle, linked before its
+    speed showed, is not on it), its lowest feature in the image (nearest the camera: the near end), and the
+    low part within ``near_m`` of it along the road, which gives the velocity (its settled features) and the
+    place and footprint across the road. Returns (body, near end's slot, body's span along the road, vx, vy,
+    x, x_lo, x_hi)."""
+    v = np.abs(s[members, 3])
+    body = members
+    if _median_of(v) > moving:
+        keep = v >= standing
+        if keep.any():
+            body = members[keep]
+    rep = body[0]
+    y_lo = y_hi = s[rep, 1]
+    for i in body:
+        if px[i, 1] > px[rep, 1]:
+            rep = i
+        y_lo = min(y_lo, s[i, 1])
+        y_hi = max(y_hi, s[i, 1])
+    low = np.empty(body.shape[0], np.int64)
+    near = np.empty(body.shape[0], np.int64)
+    n_low = n_near = 0
+    for i in body:
+        if abs(s[i, 1] - s[rep, 1]) < near_m:
+            low[n_low] = i
+            n_low += 1
+            if age[i] >= 3:
+                near[n_near] = i
+                n_near += 1
+    vx, vy = s[rep, 2], s[rep, 3]
+    if n_near:
+        vx, vy = _median_of(s[near[:n_near], 2]), _median_of(s[near[:n_near], 3])
+    xs = s[low[:n_low], 0]
+    return body, rep, y_hi - y_lo, vx, vy, _median_of(xs), xs.min(), xs.max()
+
+
+@njit(cache=True)
 def _root(parent, a):
     while parent[a] != a:
         a = parent[a]
@@ -418,17 +463,6 @@ def motion_class(s: np.ndarray, age: np.ndarray) -> np.ndarray:
     m[(v < STANDING_MPS) & (age >= SETTLED_AGE)] = STANDING
     m[v > MOVING_MPS] = MOVING
     return m
-
-
-def _moving_body(members: np.ndarray, s: np.ndarray) -> np.ndarray:
-    """A moving group's features without those standing still (below STANDING_MPS while its median is above
-    MOVING_MPS): road texture just uncovered beside a vehicle, linked before its speed showed, is not on it
-    and must not be its near end."""
-    v = np.abs(s[members, 3])
-    if _median(v) <= MOVING_MPS:
-        return members
-    keep = v >= STANDING_MPS
-    return members[keep] if keep.any() else members
 
 
 def _extent(o: VehicleState, length: float | None = None) -> tuple[float, float]:
@@ -612,20 +646,16 @@ class Grouper:
                     tr.trajectory.append((t, float(s[members[0], 0]), float(s[members[0], 1])))
                     tr.start_y = tr.trajectory[0][2]
                 continue
-            body = _moving_body(members, s)
-            rep = body[np.argmax(px[body, 1])]  # nearest the camera: lowest in the image
-            ys = s[body, 1]
+            body, rep, length, vx, vy, x, tr.x_lo, tr.x_hi = group_summary(members, s, px, age, NEAR_REP_M, MOVING_MPS,
+                                                                           STANDING_MPS)
             lz = self.zones.by_index(tr.lane_index) if tr.lane_index > 0 else None
             sign = lz.sign if lz is not None else -1
-            length = float(ys.max() - ys.min())
             rep_y = float(s[rep, 1])
             # The representative point is the near end: the front of an approaching vehicle, the rear of a
             # receding one. It never goes backwards: when the lowest feature is lost and the next one is further
             # back, the near end waits for it. (Carrying it on at the vehicle's speed instead made it creep
             # ahead of the vehicle: every change of lowest feature, between features at about the same place,
             # added a lead, and the features' speed is above the road's for any feature above the road.)
-            near_v = body[(np.abs(ys - s[rep, 1]) < NEAR_REP_M) & (age[body] >= 3)]
-            vy_near = _median(s[near_v, 3]) if len(near_v) else float(s[rep, 3])
             if tr.trajectory:
                 prev = tr.trajectory[-1][2]
                 rep_y = min(prev, rep_y) if sign < 0 else max(prev, rep_y)
@@ -640,13 +670,6 @@ class Grouper:
                 rear = rep_y
                 tr.ground = (g, max(rep_y + g, tr.ground[1]) if tr.ground else rep_y + g, sign)
             ground[vid] = tr.ground
-            # velocity: median over the settled features near the representative one (the lowest part
-            # of the vehicle; higher features move faster in the road projection)
-            vx = _median(s[near_v, 2]) if len(near_v) else float(s[rep, 2])
-            vy = vy_near
-            low = body[np.abs(ys - s[rep, 1]) < NEAR_REP_M]  # the low part: the footprint across the road
-            tr.x_lo, tr.x_hi = float(s[low, 0].min()), float(s[low, 0].max())
-            x = _median(s[low, 0])  # its place across the road (a lowest corner may lie at its side)
             st = VehicleState(
                 id=vid, t=t, x=x, y_front=front, y_rear=rear, vx=vx,
                 vy=vy, length=length, n_features=int(len(members)),

@@ -215,3 +215,18 @@ def fit_places_ref(members, age, s, fit, fit_vid, vid, d, cy, k_max, frames, min
     places = np.sort(f[ok, 2] / n[ok] / k - f[ok, 1] / n[ok])
     close = np.diff(places) <= neighbour
     return float(places[1:][close][-1]) if close.any() else float(np.median(places))
+
+
+def group_summary_ref(members, s, px, age, near_m, moving, standing) -> tuple:
+    """Same contract as grouping.group_summary, with NumPy on the group's features."""
+    v = np.abs(s[members, 3])
+    body = members
+    if np.median(v) > moving and (v >= standing).any():
+        body = members[v >= standing]
+    rep = body[np.argmax(px[body, 1])]
+    ys = s[body, 1]
+    low = body[np.abs(ys - s[rep, 1]) < near_m]
+    near = low[age[low] >= 3]
+    vx, vy = (np.median(s[near, 2]), np.median(s[near, 3])) if len(near) else (s[rep, 2], s[rep, 3])
+    xs = s[low, 0]
+    return body, rep, ys.max() - ys.min(), vx, vy, np.median(xs), xs.min(), xs.max()

@@ -108,7 +108,8 @@ class VisionPipeline:
     def warmup(self) -> None:
         """Compile (or load from cache) every numba kernel on dummy data, leaving no state behind."""
         from appliance.corners import select_spaced
-        from appliance.grouping import assign_ids, components, fit_places, isolate, pair_update, unbridge
+        from appliance.grouping import (assign_ids, components, fit_places, group_summary, isolate, pair_update,
+                                        unbridge)
         from appliance.tracker import init_features, track_step
 
         p = self.p
@@ -138,6 +139,7 @@ class VisionPipeline:
         labels, vids = np.zeros(n, np.int64), np.full(n, -1, np.int64)
         assign_ids(live, labels, vids, 1, np.empty(n, np.int64), np.empty(n + 1, np.int64), np.empty(n, np.int64))
         fit_places(live, np.full(n, 3, np.int32), s, np.zeros((n, 5)), vids, 1, 10.0, 0.0, 1.5, 10, 2.25, 1.0)
+        group_summary(live, s, px, np.full(n, 3, np.int32), 3.0, 4.0, 1.0)
 
     # ------------------------------------------------------------------------------------------
     def _check_frame(self, frame: Frame) -> np.ndarray:

@@ -86,6 +86,7 @@ def track_step(img, Hm, Hinv, off_x, off_y, dt, alive, px, s, P, tmpl, age, miss
     nT = float(T * T)
     sum1 = np.zeros((3 * radius + 4 + T, 3 * radius + 4 + T))  # running sums of the search window and its squares
     sum2 = np.zeros((3 * radius + 4 + T, 3 * radius + 4 + T))
+    spt = np.empty((3 * radius + 3, 3 * radius + 3))  # each position's sum of template x patch
     for i in range(alive.shape[0]):
         if not alive[i]:
             continue
@@ -141,6 +142,19 @@ def track_step(img, Hm, Hinv, off_x, off_y, dt, alive, px, s, P, tmpl, age, miss
                 sum1[j + 1, c + 1] = sum1[j, c + 1] + rs
                 sum2[j + 1, c + 1] = sum2[j, c + 1] + rss
         tm = tmpl[i]
+        R = 2 * r + 1
+        # the template's products summed for all positions at once, pixel by pixel in the template's order
+        for a in range(R):
+            for b in range(R):
+                spt[a, b] = 0.0
+        for j in range(T):
+            for q in range(T):
+                w = tm[j, q]
+                for a in range(R):
+                    row = img[y0 + a + j, x0 + q:x0 + q + R]
+                    acc = spt[a]
+                    for b in range(R):
+                        acc[b] += float(row[b]) * w
         best = -2.0
         bx = 0
         by = 0
@@ -151,14 +165,7 @@ def track_step(img, Hm, Hinv, off_x, off_y, dt, alive, px, s, P, tmpl, age, miss
                 sp = sum1[a + T, b + T] - sum1[a, b + T] - sum1[a + T, b] + sum1[a, b]
                 spp = sum2[a + T, b + T] - sum2[a, b + T] - sum2[a + T, b] + sum2[a, b]
                 var = spp - sp * sp / nT
-                c = -1.0
-                if var >= 1e-6:
-                    spt = 0.0
-                    for j in range(T):
-                        row = y0 + a + j
-                        for q in range(T):
-                            spt += float(img[row, x0 + b + q]) * tm[j, q]
-                    c = spt / np.sqrt(var)
+                c = spt[a, b] / np.sqrt(var) if var >= 1e-6 else -1.0
                 scores[a, b] = c
                 if c > best:
                     best = c

@@ -8,7 +8,7 @@ import pytest
 
 from appliance import kernels_ref as ref
 from appliance.corners import select_spaced
-from appliance.grouping import assign_ids, components, fit_places, pair_update
+from appliance.grouping import assign_ids, components, fit_places, group_summary, pair_update
 from appliance.tracker import extract_template, track_step
 
 
@@ -227,3 +227,20 @@ def test_fit_places_matches_reference():
         seen += not np.isnan(a)
         np.testing.assert_array_equal(fit, fit2)
     assert seen > 10
+
+
+def test_group_summary_matches_reference():
+    """Random groups, some with standing features among moving ones: the same body, near end, span, velocity
+    and place across the road as the NumPy reference."""
+    rng = np.random.default_rng(13)
+    for trial in range(60):
+        n = 40
+        s = np.column_stack([rng.uniform(-4, 4, n), rng.uniform(20, 80, n), rng.normal(0, 0.3, n),
+                             np.where(rng.random(n) < 0.2, rng.normal(0, 0.4, n), rng.normal(-15, 2, n))])
+        px = np.column_stack([rng.uniform(0, 640, n), rng.uniform(0, 480, n)])
+        age = rng.integers(0, 8, n).astype(np.int32)
+        members = np.sort(rng.choice(n, int(rng.integers(1, 15)), replace=False)).astype(np.int64)
+        got = group_summary(members, s, px, age, 3.0, 4.0, 1.0)
+        want = ref.group_summary_ref(members, s, px, age, 3.0, 4.0, 1.0)
+        np.testing.assert_array_equal(got[0], want[0])
+        assert got[1] == want[1] and list(got[2:]) == pytest.approx(list(want[2:]), abs=1e-12), trial
