@@ -284,8 +284,8 @@ def components(live, state, labels):
 @njit(cache=True)
 def assign_ids(live, labels, fvid, next_vid, order, starts, vids):
     """Vehicle ids for the components (labels) over the live slots, biggest component first (ties: lower
-    label first): each keeps the id most of its features had (fewest-numbered among equals) unless a bigger
-    one took it, else gets a new one. Fills order (the live slots grouped by component, biggest first),
+    label first): each keeps the id most of its features had (the lowest of equally frequent ones) unless a
+    bigger one took it, else gets a new one. Fills order (the live slots grouped by component, biggest first),
     starts (each component's first index in order, then the end) and vids (each component's id), updates
     fvid; returns (components, next_vid)."""
     n = live.shape[0]
@@ -397,6 +397,7 @@ def fit_places(members, age, s, fit, fit_vid, vid, d, cy, k_max, frames, min_var
 
 @njit(cache=True)
 def _median_of(a):
+    """np.median's value for the few numbers of one group, without its overhead."""
     a = np.sort(a)
     n = a.shape[0]
     return a[n // 2] if n % 2 else (a[n // 2 - 1] + a[n // 2]) / 2.0
@@ -473,13 +474,6 @@ def _extent(o: VehicleState, length: float | None = None) -> tuple[float, float]
     near = min(o.y_front, o.y_rear)
     span = abs(o.y_front - o.y_rear) if length is None else length
     return near - 1.0, near + max(span, MIN_LENGTH_M) + 1.0
-
-
-def _median(a) -> float:
-    """np.median's value for the few numbers of one group, without its overhead."""
-    a = np.sort(np.asarray(a, dtype=np.float64))
-    n = len(a)
-    return float(a[n // 2]) if n % 2 else float((a[n // 2 - 1] + a[n // 2]) / 2.0)
 
 
 @dataclass
@@ -768,9 +762,9 @@ class Grouper:
         tr.watch_host, tr.watch = 0, []
         if sum(hit for _, _, hit in watch) < WATCH_MIN_HITS:
             return None
-        ks = [k for _, k, _ in watch]
+        ks = np.array([k for _, k, _ in watch])
         m = max(len(ks) // 3, 1)  # the ratio over the first third of the watch and over the last
-        if abs(_median(ks[-m:]) / _median(ks[:m]) - 1.0) > WATCH_K_DRIFT:
+        if abs(np.median(ks[-m:]) / np.median(ks[:m]) - 1.0) > WATCH_K_DRIFT:
             return None
         if other is None or other.last is None or other.last.t != st.t:
             return GHOST
