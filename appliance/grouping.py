@@ -284,8 +284,8 @@ def components(live, state, labels):
 @njit(cache=True)
 def assign_ids(live, labels, fvid, next_vid, order, starts, vids):
     """Vehicle ids for the components (labels) over the live slots, biggest component first (ties: lower
-    label first): each keeps the id most of its features had (the lowest of equally frequent ones) unless a
-    bigger one took it, else gets a new one. Fills order (the live slots grouped by component, biggest first),
+    label first): each takes the most frequent of its features' ids that no bigger one took (the lowest of
+    equally frequent ones), or a new one if none is left. Fills order (the live slots grouped by component, biggest first),
     starts (each component's first index in order, then the end) and vids (each component's id), updates
     fvid; returns (components, next_vid)."""
     n = live.shape[0]
@@ -807,7 +807,9 @@ class Grouper:
             return tr.ground[0]
         behind = fit_places(members, age, s, self.fit, self.fit_vid, tr.id, near_y - self.foot[1], self.foot[1],
                             self.k_max, FIT_FRAMES, FIT_TRAVEL_SD_M ** 2, FIT_NEIGHBOUR_M)
-        if np.isnan(behind):  # until some are fitted: the last length, or at first the features' span
+        # until some are fitted, or while a feature not yet fitted lies further (a fragment that just joined):
+        # the last length, or at first the features' span
+        if np.isnan(behind):
             return tr.ground[0] if tr.ground else length
         tr.fitted = True
         if behind < FIT_MIN_EXTENT_M:
