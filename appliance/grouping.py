@@ -285,9 +285,9 @@ def components(live, state, labels):
 def assign_ids(live, labels, fvid, next_vid, order, starts, vids):
     """Vehicle ids for the components (labels) over the live slots, biggest component first (ties: lower
     label first): each takes the most frequent of its features' ids that no bigger one took (the lowest of
-    equally frequent ones), or a new one if none is left. Fills order (the live slots grouped by component, biggest first),
-    starts (each component's first index in order, then the end) and vids (each component's id), updates
-    fvid; returns (components, next_vid)."""
+    equally frequent ones), or a new one if none is left. Fills order (the live slots grouped by component,
+    biggest first), starts (each component's first index in order, then the end) and vids (each component's
+    id), updates fvid; returns (components, next_vid)."""
     n = live.shape[0]
     if n == 0:
         starts[0] = 0
