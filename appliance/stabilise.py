@@ -28,7 +28,7 @@ def _parabola(a: float, b: float, c: float) -> float:
     d = a - 2.0 * b + c
     if d >= 0:
         return 0.0
-    return float(np.clip(0.5 * (a - c) / d, -0.5, 0.5))
+    return float(min(max(0.5 * (a - c) / d, -0.5), 0.5))
 
 
 class Stabiliser:
