@@ -1,7 +1,8 @@
-"""The road background model and its shadow test: a shadow darkens the road and keeps its texture,
-a vehicle (dark or bright) hides it."""
+"""The road background model and its image tests: a shadow darkens the road by one factor and keeps its
+texture, a vehicle (dark or bright) hides it; two parts are one body where no road shows between them."""
 
 import numpy as np
+import pytest
 
 from appliance.background import READY_UPDATES, UPDATE_EVERY, Background
 
@@ -86,3 +87,46 @@ def test_two_parts_are_one_body_only_where_the_image_between_them_is_off_the_roa
     two[28:40, 38:56] = 60
     assert not bg.is_joined(two, top, cab)
     assert not Background().is_joined(truck, top, cab)  # no road learnt yet: no answer but "no"
+
+
+@pytest.mark.parametrize("bright_share, shadow", [(0.05, True), (0.12, False)])
+def test_a_shadow_may_hold_a_little_of_its_bright_caster_but_not_more(bright_share, shadow):
+    """MAX_BRIGHT_SHARE (8 %): a shadow's box may take in a sliver of the bright vehicle casting it; a box with
+    more of it brightened is a vehicle there."""
+    road = _road()
+    bg = _learnt(road)
+    pts = np.array([[50.0, 40.0], [100.0, 40.0], [50.0, 70.0], [100.0, 70.0]])
+    img = road.copy()
+    img[37:74, 47:104] = (road[37:74, 47:104] * 0.5).astype(np.uint8)  # the whole box (points + 3 px) shadowed
+    cols = int(round(bright_share * 57))  # full-height strips at the box's left edge: the caster's side
+    img[37:74, 47:47 + cols] = 235
+    assert bg.is_shadow(img, pts) == shadow
+
+
+@pytest.mark.parametrize("second_share, shadow", [(0.3, True), (0.5, False)])
+def test_a_shadow_dims_the_road_by_one_factor(second_share, shadow):
+    """MIN_CORE_SHARE (65 %): a shadow dims the road it covers by one factor (the sky's share of light); a box
+    dimmed half by 0.5 and half by 0.72 (a dark vehicle's paint over the road's texture would spread the ratios
+    as much) is no shadow, one with 30 % of its dark pixels off the main factor still is (penumbra, edges)."""
+    road = _road()
+    bg = _learnt(road)
+    pts = np.array([[50.0, 40.0], [100.0, 40.0], [50.0, 70.0], [100.0, 70.0]])
+    img = road.copy()
+    split = 47 + int(round((1.0 - second_share) * 57))
+    img[37:74, 47:split] = (road[37:74, 47:split] * 0.5).astype(np.uint8)
+    img[37:74, split:104] = (road[37:74, split:104] * 0.72).astype(np.uint8)
+    assert bg.is_shadow(img, pts) == shadow
+
+
+@pytest.mark.parametrize("road_share, joined", [(0.08, True), (0.3, False)])
+def test_two_parts_are_one_body_unless_road_shows_on_the_line_between_them(road_share, joined):
+    """MIN_JOINED_SHARE (85 %): the line between a tall vehicle's parts may cross a little road-coloured image
+    (a window, a shadowed gap); with more road on it the two are separate vehicles."""
+    road = _road()
+    bg = _learnt(road)
+    a, b = np.array([[40.0, 60.0]]), np.array([[140.0, 60.0]])
+    img = road.copy()
+    img[50:71, 38:143] = np.clip(200 + np.random.default_rng(8).normal(0, 5, (21, 105)), 0, 255).astype(np.uint8)
+    gap = int(round(road_share * 101))  # of the line's 101 pixels
+    img[50:71, 90:90 + gap] = road[50:71, 90:90 + gap]
+    assert bg.is_joined(img, a, b) == joined
