@@ -130,3 +130,22 @@ def test_two_parts_are_one_body_unless_road_shows_on_the_line_between_them(road_
     gap = int(round(road_share * 101))  # of the line's 101 pixels
     img[50:71, 90:90 + gap] = road[50:71, 90:90 + gap]
     assert bg.is_joined(img, a, b) == joined
+
+
+@pytest.mark.parametrize("dark_share, attached", [(0.7, True), (0.5, False)])
+def test_a_shadow_belongs_to_a_caster_only_where_the_road_between_them_is_shadowed_too(dark_share, attached):
+    """MIN_ATTACHED_DARK (60 %): a shadow touches its caster, so the road between the two (across the rows
+    they share) is dark too, up to a sunlit sliver where the caster's outline and the features' places do not
+    meet; a vehicle with sunlit road between it and the shadow is not the one casting it."""
+    road = _road()
+    bg = _learnt(road)
+    pts = np.array([[50.0, 40.0], [80.0, 40.0], [50.0, 70.0], [80.0, 70.0]])  # on the shadow
+    caster = np.array([[120.0, 42.0], [140.0, 42.0], [120.0, 68.0], [140.0, 68.0]])
+    img = road.copy()
+    img[37:74, 47:84] = (road[37:74, 47:84] * 0.5).astype(np.uint8)
+    img[38:73, 118:143] = np.clip(200 + np.random.default_rng(9).normal(0, 5, (35, 25)), 0, 255).astype(np.uint8)
+    # the gap between them, columns 80-119: shadowed from the shadow's side for dark_share of its width
+    dark_to = 80 + int(round(dark_share * 40))
+    img[37:74, 84:dark_to] = (road[37:74, 84:dark_to] * 0.5).astype(np.uint8)
+    assert bg.is_shadow(img, pts)
+    assert bg.is_attached_shadow(img, pts, caster) == attached
