@@ -282,16 +282,18 @@ def components(live, state, labels):
 
 
 @njit(cache=True)
-def assign_ids(live, labels, fvid, next_vid, order, starts, vids):
+def assign_ids(live, labels, fvid, next_vid):
     """Vehicle ids for the components (labels) over the live slots, biggest component first (ties: lower
     label first): each takes the most frequent of its features' ids that no bigger one took (the lowest of
-    equally frequent ones), or a new one if none is left. Fills order (the live slots grouped by component,
-    biggest first), starts (each component's first index in order, then the end) and vids (each component's
-    id), updates fvid; returns (components, next_vid)."""
+    equally frequent ones), or a new one if none is left. Updates fvid; returns (order: the live slots grouped
+    by component, biggest first; starts: each component's first index in order, then the end; vids: each
+    component's id; next_vid)."""
     n = live.shape[0]
+    order = np.empty(n, np.int64)
+    starts = np.zeros(n + 1, np.int64)
+    vids = np.empty(n, np.int64)
     if n == 0:
-        starts[0] = 0
-        return 0, next_vid
+        return order, starts[:1], vids, next_vid
     lab = labels[live]
     srt = np.argsort(lab, kind="mergesort")
     ng = 1
@@ -347,7 +349,7 @@ def assign_ids(live, labels, fvid, next_vid, order, starts, vids):
         for a in range(starts[r], pos):
             fvid[order[a]] = vid
     starts[ng] = pos
-    return ng, next_vid
+    return order, starts[:ng + 1], vids[:ng], next_vid
 
 
 @njit(cache=True)
@@ -590,10 +592,8 @@ class Grouper:
             components(live, self.state, self.labels)
 
     def _assign_ids(self, live: np.ndarray) -> dict[int, np.ndarray]:
-        n = len(live)
-        order, starts, vids = np.empty(n, np.int64), np.empty(n + 1, np.int64), np.empty(n, np.int64)
-        ng, self.next_vid = assign_ids(live, self.labels, self.fvid, self.next_vid, order, starts, vids)
-        return {int(vids[r]): order[starts[r]:starts[r + 1]] for r in range(ng)}
+        order, starts, vids, self.next_vid = assign_ids(live, self.labels, self.fvid, self.next_vid)
+        return {int(v): order[a:b] for v, a, b in zip(vids, starts[:-1], starts[1:])}
 
     def step(self, t: float, s: np.ndarray, px: np.ndarray, lane: np.ndarray, alive: np.ndarray, age: np.ndarray,
              is_shadow: Callable[[np.ndarray, np.ndarray | None], bool] | None = None,

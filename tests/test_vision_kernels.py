@@ -194,10 +194,9 @@ def test_assign_ids_matches_reference():
         labels[live] = rng.integers(0, max(1, n // 3), n)
         fvid = np.where(rng.random(80) < 0.3, -1, rng.integers(1, 8, 80)).astype(np.int64)
         fvid_ref = fvid.copy()
-        order, starts, vids = np.empty(n, np.int64), np.empty(n + 1, np.int64), np.empty(n, np.int64)
-        ng, nxt = assign_ids(live, labels, fvid, 50, order, starts, vids)
+        order, starts, vids, nxt = assign_ids(live, labels, fvid, 50)
         expect, nxt_ref = ref.assign_ids_ref(live, labels, fvid_ref, 50)
-        got = {int(vids[r]): order[starts[r]:starts[r + 1]] for r in range(ng)}
+        got = {int(vids[r]): order[starts[r]:starts[r + 1]] for r in range(len(vids))}
         assert list(got) == list(expect) and nxt == nxt_ref, trial
         for vid, members in expect.items():
             np.testing.assert_array_equal(got[vid], members)
