@@ -1,7 +1,8 @@
 """Common-motion grouping of features into vehicles (incremental pair graph, connected components).
 
-A pair is linked when first seen together within the connection distance and dismissed when
-its distance range over the common interval exceeds the segmentation threshold (TI/Beymer style).
+A pair is linked when first seen together within the connection distance (or later, for the few features of
+a lone vehicle) and dismissed when its distance range over the common interval exceeds the segmentation
+threshold (TI/Beymer style).
 A new group that is part of a known vehicle (its roof, projected further and faster) joins it; a
 reported one is watched for RECHECK_S more and joins once it keeps one place on a vehicle. A part beyond what
 is seen of its vehicle joins only where the image between the two is one body.
@@ -23,6 +24,8 @@ UNSEEN, LINKED, APART = 0, 1, 2
 # a fragment joined to its vehicle for good: MERGED_LO when the pair's lower slot is the fragment's, MERGED_HI
 # when the higher one is
 MERGED_LO, MERGED_HI = 3, 4
+# same lane, too far apart when first seen together: they may still link (see LATE_BESIDE_M)
+FAR = 5
 SETTLED_AGE = 5  # frames before a feature's speed counts
 # A feature's motion when a pair is first seen: STANDING below STANDING_MPS once settled (scenery, an
 # occluder's edge, a queued vehicle), MOVING above MOVING_MPS, else unsure (0)
@@ -136,15 +139,30 @@ SIDE_LATE_HOST_K = 2.0  # a flank reported before its vehicle joins it if the ve
 LONE_SHADOW_S = 0.25  # tested over this long ...
 LONE_SHADOW_TESTS = 5  # ... and in at least this many frames ...
 LONE_SHADOW_SHARE = 0.6  # ... of which this share must find a shadow
+# A vehicle may show only a few features, in groups each too small to be reported (rain, dusk, a plain body):
+# its roof and its bumper are further apart in projection than the connection distance when first seen far
+# away. Settled features of two such groups of one lane link once they come within the connection distance,
+# both moving, where the groups are alone: no group of the next lane moves beside them (within LATE_BESIDE_M
+# along the road and LATE_BESIDE_X_M across, at LATE_BESIDE_K times their speed: a vehicle's flank, shadow or
+# roof seen in the next lane), and no vehicle of their lane or the next could hold them as a part (within
+# LATE_HOST_X_M of its footprint across the road and ELEVATED_LENGTH_M along it, after undoing a height
+# magnification within LATE_HOST_K_SPREAD of their speed ratio).
+LATE_BESIDE_M = 15.0
+LATE_BESIDE_X_M = 6.0
+LATE_BESIDE_K = (0.7, 1.5)
+LATE_HOST_X_M = 2.5
+LATE_HOST_K_SPREAD = 0.15
 
 
 @njit(cache=True)
-def pair_update(live, s, lane, motion, state, rng, y0, conn_x, conn_y, seg_x, seg_y, seg_rel):
+def pair_update(live, s, lane, motion, state, rng, y0, conn_x, conn_y, seg_x, seg_y, seg_rel, late):
     """Update the pair graph over the live slots. Only features born in the same lane may link (side by
     side vehicles stay apart); a tall vehicle's top seen in the next lane is joined later as a fragment.
     Nor do a standing and a moving feature (motion STANDING and MOVING): a vehicle passing what stands
-    still is not one object with it. rng[i, j] = (min dx, max dx, min dy, max dy) of the pair distance since
-    linking; y0[i, j] = Y of the lower slot at linking (for the travelled distance)."""
+    still is not one object with it. A pair first seen further apart than the connection distance (FAR) links
+    later if both slots may link late (late[slot], see LATE_BESIDE_M) and both move. rng[i, j] = (min dx,
+    max dx, min dy, max dy) of the pair distance since linking; y0[i, j] = Y of the lower slot at linking (for
+    the travelled distance)."""
     n = live.shape[0]
     for a in range(n):
         i = live[a]
@@ -157,15 +175,16 @@ def pair_update(live, s, lane, motion, state, rng, y0, conn_x, conn_y, seg_x, se
             dx = s[j2, 0] - s[i2, 0]
             dy = s[j2, 1] - s[i2, 1]
             st = state[i2, j2]
-            if st == UNSEEN:
-                if (lane[i2] == lane[j2] and lane[i2] > 0 and abs(dx) < conn_x and abs(dy) < conn_y
-                        and motion[i2] * motion[j2] != STANDING * MOVING):
-                    state[i2, j2] = LINKED
-                    rng[i2, j2, 0] = dx
-                    rng[i2, j2, 1] = dx
-                    rng[i2, j2, 2] = dy
-                    rng[i2, j2, 3] = dy
-                    y0[i2, j2] = s[i2, 1]
+            if st == UNSEEN or st == FAR:
+                near = abs(dx) < conn_x and abs(dy) < conn_y
+                if st == FAR:
+                    if near and late[i2] and late[j2] and motion[i2] == MOVING and motion[j2] == MOVING:
+                        _link_pair(i2, j2, dx, dy, s, state, rng, y0)
+                elif lane[i2] == lane[j2] and lane[i2] > 0 and motion[i2] * motion[j2] != STANDING * MOVING:
+                    if near:
+                        _link_pair(i2, j2, dx, dy, s, state, rng, y0)
+                    else:
+                        state[i2, j2] = FAR
                 else:
                     state[i2, j2] = APART
             elif st == LINKED:
@@ -181,6 +200,29 @@ def pair_update(live, s, lane, motion, state, rng, y0, conn_x, conn_y, seg_x, se
                 travel = abs(s[i2, 1] - y0[i2, j2])
                 if r[1] - r[0] > seg_x or r[3] - r[2] > seg_y + seg_rel * travel:
                     state[i2, j2] = APART
+
+
+@njit(cache=True)
+def _link_pair(i, j, dx, dy, s, state, rng, y0):
+    state[i, j] = LINKED
+    rng[i, j, 0] = dx
+    rng[i, j, 1] = dx
+    rng[i, j, 2] = dy
+    rng[i, j, 3] = dy
+    y0[i, j] = s[i, 1]
+
+
+@njit(cache=True)
+def group_medians(members, starts, s):
+    """Per group (members[starts[g]:starts[g + 1]]): the median X, Y and along-road speed of its features."""
+    ng = starts.shape[0] - 1
+    out = np.empty((ng, 3))
+    for g in range(ng):
+        m = members[starts[g]:starts[g + 1]]
+        out[g, 0] = _median_of(s[m, 0])
+        out[g, 1] = _median_of(s[m, 1])
+        out[g, 2] = _median_of(s[m, 3])
+    return out
 
 
 @njit(cache=True)
@@ -539,6 +581,7 @@ class Grouper:
         self.state = np.zeros((n, n), np.int8)
         self.rng = np.zeros((n, n, 4), np.float32)
         self.y0 = np.zeros((n, n), np.float32)
+        self.late = np.zeros(n, np.bool_)  # per slot: may link late (see LATE_BESIDE_M), as of the last step
         self.labels = np.full(n, -1, np.int64)
         self.fvid = np.full(n, -1, np.int64)
         # per feature, its straight-line fit against its group's near end (see _ground_length): frames, and
@@ -567,6 +610,7 @@ class Grouper:
         self.state[:, slots] = UNSEEN
         self.fvid[slots] = -1
         self.fit_vid[slots] = -1
+        self.late[slots] = False
 
     def _components(self, live: np.ndarray, s: np.ndarray, age: np.ndarray) -> None:
         """Label the connected components of the pair graph (self.labels). With the camera known, no feature
@@ -610,10 +654,11 @@ class Grouper:
         groups: dict[int, np.ndarray] = {}
         ground: dict[int, tuple[float, float, int] | None] = {}
         pending: list = []
+        small: list[tuple[int, np.ndarray]] = []  # groups too small to be reported: (id, members)
         self.merged_now = set()
         if len(live):
             pair_update(live, s, lane, motion_class(s, age), self.state, self.rng, self.y0, p.connection_lateral_m,
-                        p.connection_m, p.segmentation_lateral_m, p.segmentation_m, p.segmentation_per_m)
+                        p.connection_m, p.segmentation_lateral_m, p.segmentation_m, p.segmentation_per_m, self.late)
             self._components(live, s, age)
             groups = self._assign_ids(live)
         # shadow(group slots, host id): the image test for a group lying only on the host's shadow
@@ -639,6 +684,7 @@ class Grouper:
                 if not tr.trajectory:  # too small to be a vehicle yet: only remember where it started
                     tr.trajectory.append((t, float(s[members[0], 0]), float(s[members[0], 1])))
                     tr.start_y = tr.trajectory[0][2]
+                small.append((vid, members))
                 continue
             body, rep, length, vx, vy, x, tr.x_lo, tr.x_hi = group_summary(members, s, px, age, NEAR_REP_M, MOVING_MPS,
                                                                            STANDING_MPS)
@@ -740,8 +786,66 @@ class Grouper:
         for vid in self._passed_through(t):
             self._retire_quietly(vid, groups[vid], retire)
             out = [st for st in out if st.id != vid]
+        self.late = self._late_slots(t, small, s, age)
         slots = np.concatenate(retire) if retire else np.zeros(0, np.int64)
         return [self._grounded(st, ground.get(st.id)) for st in out], slots
+
+    def _late_slots(self, t: float, small: list[tuple[int, np.ndarray]], s: np.ndarray, age: np.ndarray
+                    ) -> np.ndarray:
+        """Per slot: a settled feature of a moving group too small to be reported that is alone (see
+        LATE_BESIDE_M), so that it may link late."""
+        late = np.zeros(len(self.fvid), np.bool_)
+        small = [(vid, m) for vid, m in small if self.tracks[vid].lane_index > 0]
+        if not small:
+            return late
+        members = np.concatenate([m for _, m in small])
+        starts = np.cumsum([0] + [len(m) for _, m in small])
+        med = group_medians(members, starts, s)
+        moving = np.abs(med[:, 2]) > MOVING_MPS
+        if not moving.any():
+            return late
+        small = [g for g, mv in zip(small, moving) if mv]
+        sx, sy, sv = med[moving].T
+        sl = np.array([self.tracks[vid].lane_index for vid, _ in small])
+        big = [tr for tr in self.tracks.values()
+               if tr.lane_index > 0 and tr.last is not None and tr.last.t == t]
+        bl = np.array([tr.lane_index for tr in big], np.int64)
+        bx = np.array([tr.last.x for tr in big])
+        by = np.array([min(tr.last.y_front, tr.last.y_rear) for tr in big])
+        bv = np.array([tr.last.vy for tr in big])
+        # a group of the next lane beside it, moving alike (the small moving ones too)
+        ol, ox, oy, ov = (np.concatenate(a) for a in ((sl, bl), (sx, bx), (sy, by), (sv, bv)))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = ov[None, :] / sv[:, None]
+        beside = ((np.abs(ol[None, :] - sl[:, None]) == 1) & (np.abs(oy[None, :] - sy[:, None]) <= LATE_BESIDE_M)
+                  & (np.abs(ox[None, :] - sx[:, None]) <= LATE_BESIDE_X_M)
+                  & (ratio >= LATE_BESIDE_K[0]) & (ratio <= LATE_BESIDE_K[1])).any(axis=1)
+        hosted = self._could_hold(big, sl, sx, sy, sv)
+        for (_, m), ok in zip(small, ~beside & ~hosted):
+            if ok:
+                late[m[age[m] >= SETTLED_AGE]] = True
+        return late
+
+    def _could_hold(self, big: list[VehicleTrack], sl: np.ndarray, sx: np.ndarray, sy: np.ndarray, sv: np.ndarray
+                    ) -> np.ndarray:
+        """Per small group (lane sl, median place sx, sy, speed sv): whether a vehicle (a group big enough to
+        be one) of its lane or the next could hold it as a part, level or elevated."""
+        hosted = np.zeros(len(sl), np.bool_)
+        need = self.p.min_features - int(self.lights_only)
+        fx, fy = (self.foot[0], self.foot[1]) if self.foot is not None else (0.0, 0.0)
+        for tr in big:
+            o = tr.last
+            if tr.n_max < need or o.vy == 0:
+                continue
+            lo = min(o.y_front, o.y_rear) - 2.0
+            hi = lo + 4.0 + max(tr.own_length, MIN_LENGTH_M, ELEVATED_LENGTH_M)
+            cand = (np.abs(sl - tr.lane_index) <= 1) & (sv * o.vy > 0) & ~hosted
+            for spread in (1.0 - LATE_HOST_K_SPREAD, 1.0, 1.0 + LATE_HOST_K_SPREAD):
+                k = np.clip(spread * sv / o.vy, 1.0, self.k_max) if self.foot is not None else 1.0
+                gx, gy = fx + (sx - fx) / k, fy + (sy - fy) / k
+                hosted |= cand & (gx >= tr.x_lo - LATE_HOST_X_M) & (gx <= tr.x_hi + LATE_HOST_X_M) & (gy >= lo) & (
+                    gy <= hi)
+        return hosted
 
     def _watched(self, tr: VehicleTrack, st: VehicleState, host: int | None, groups: dict[int, np.ndarray]
                  ) -> int | None:

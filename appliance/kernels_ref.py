@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-UNSEEN, LINKED, APART, MERGED_LO, MERGED_HI = 0, 1, 2, 3, 4
+UNSEEN, LINKED, APART, MERGED_LO, MERGED_HI, FAR = 0, 1, 2, 3, 4, 5
 STANDING, MOVING = 1, 2
 
 
@@ -99,7 +99,7 @@ def select_spaced_ref(cand_xy: np.ndarray, live_xy: np.ndarray, spacing: float, 
     return picked
 
 
-def pair_update_ref(live, s, lane, motion, state, rng, y0, conn_x, conn_y, seg_x, seg_y, seg_rel) -> None:
+def pair_update_ref(live, s, lane, motion, state, rng, y0, conn_x, conn_y, seg_x, seg_y, seg_rel, late) -> None:
     """Same contract as grouping.pair_update, vectorised over the upper triangle."""
     live = np.sort(np.asarray(live))
     I, J = np.triu_indices(len(live), 1)
@@ -108,9 +108,12 @@ def pair_update_ref(live, s, lane, motion, state, rng, y0, conn_x, conn_y, seg_x
     dy = s[j, 1] - s[i, 1]
     st = state[i, j]
     new = st == UNSEEN
-    link = new & (lane[i] == lane[j]) & (lane[i] > 0) & (np.abs(dx) < conn_x) & (np.abs(dy) < conn_y)
-    link &= motion[i].astype(int) * motion[j] != STANDING * MOVING
-    state[i[new], j[new]] = np.where(link[new], LINKED, APART)
+    near = (np.abs(dx) < conn_x) & (np.abs(dy) < conn_y)
+    same = (lane[i] == lane[j]) & (lane[i] > 0) & (motion[i].astype(int) * motion[j] != STANDING * MOVING)
+    state[i[new], j[new]] = np.where(same[new], np.where(near[new], LINKED, FAR), APART)
+    link = (new & same & near) | ((st == FAR) & near & late[i] & late[j] & (motion[i] == MOVING)
+                                  & (motion[j] == MOVING))
+    state[i[link], j[link]] = LINKED
     for k, v in enumerate((dx, dx, dy, dy)):
         rng[i[link], j[link], k] = v[link]
     y0[i[link], j[link]] = s[i[link], 1]

@@ -108,8 +108,8 @@ class VisionPipeline:
     def warmup(self) -> None:
         """Compile (or load from cache) every numba kernel on dummy data, leaving no state behind."""
         from appliance.corners import select_spaced
-        from appliance.grouping import (assign_ids, components, fit_places, group_summary, isolate, pair_update,
-                                        unbridge)
+        from appliance.grouping import (assign_ids, components, fit_places, group_medians, group_summary, isolate,
+                                        pair_update, unbridge)
         from appliance.tracker import init_features, track_step
 
         p = self.p
@@ -131,7 +131,7 @@ class VisionPipeline:
         live = np.arange(n, dtype=np.int64)
         state = np.zeros((n, n), np.int8)
         pair_update(live, s, np.ones(n, np.int32), np.zeros(n, np.int8), state, np.zeros((n, n, 4), np.float32),
-                    np.zeros((n, n), np.float32), 2.5, 5.0, 1.0, 2.0, 0.1)
+                    np.zeros((n, n), np.float32), 2.5, 5.0, 1.0, 2.0, 0.1, np.zeros(n, np.bool_))
         components(live, state, np.zeros(n, np.int64))
         owner = np.array([-1, 1, 2, -1], np.int64)
         kept = unbridge(live[:1], live, owner, s, state)
@@ -140,6 +140,7 @@ class VisionPipeline:
         assign_ids(live, labels, vids, 1)
         fit_places(live, np.full(n, 3, np.int32), s, np.zeros((n, 5)), vids, 1, 10.0, 0.0, 1.5, 10, 2.25, 1.0)
         group_summary(live, s, px, np.full(n, 3, np.int32), 3.0, 4.0, 1.0)
+        group_medians(live, np.array([0, n], np.int64), s)
 
     # ------------------------------------------------------------------------------------------
     def _check_frame(self, frame: Frame) -> np.ndarray:

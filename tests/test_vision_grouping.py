@@ -532,3 +532,30 @@ def test_a_trucks_box_seen_beyond_its_cab_and_over_the_next_lane_joins_it_where_
     top = (_box(-1.2, -0.6, 48.0, 55.0, 8, 52), -15.0, 1, 12, 3.8)
     seen = _run([cab, top], joined=joined)
     assert _counted(seen) == (1 if joined else 2), {k: len(v) for k, v in seen.items()}
+
+
+def test_a_vehicle_seen_only_as_small_groups_is_one_where_it_is_alone():
+    """A car showing two features low (its bumper) and two on its roof: far away the two pairs lie further apart
+    in projection than the connection distance (the roof's is magnified), and each is too small to be
+    reported. Once closer they link (both settled and moving, nothing beside them) and the car counts."""
+    bumper = (_box(0.8, 2.4, 58.0, 58.4, 2, 51), -15.0, 2, 0, 0.3)
+    roof = (_box(1.0, 2.2, 59.0, 59.6, 2, 52), -15.0, 2, 0, 1.0)
+    assert _counted(_run([bumper, roof])) == 1
+
+
+def test_small_groups_beside_a_vehicle_or_over_it_do_not_link_into_a_vehicle_of_their_own():
+    """Two small groups in the next lane moving with a car (its flank, or a mirror and its shadow) would link
+    as a lone car's do and, with no image test to say they are its shadow, count as a vehicle: beside a
+    vehicle they do not link. Nor do two small groups on a truck's box behind its cab (the cab's group is
+    the vehicle; the box top is magnified beyond what the cab shows of it)."""
+    car = (_box(1.0, 2.6, 56.0, 60.0, 6, 56), -15.0, 1, 0, 0.0)
+    flank_low = (_box(5.4, 5.7, 57.0, 57.3, 2, 57), -15.0, 2, 0, 0.2)
+    flank_high = (_box(5.4, 5.7, 54.1, 54.4, 2, 58), -15.0, 2, 0, 1.5)
+    assert _counted(_run([flank_low, flank_high])) == 1  # alone, the two groups do link
+    seen = _run([car, flank_low, flank_high], frames=80)  # (until the car leaves the view)
+    assert _counted(seen) == 1 and len(seen) == 1, {k: len(v) for k, v in seen.items()}
+    cab = (_box(0.8, 2.6, 44.0, 47.0, 6, 61), -15.0, 2, 0, 0.0)
+    box_rear = (_box(1.0, 2.4, 52.0, 52.3, 2, 62), -15.0, 2, 0, 0.5)
+    box_top = (_box(1.0, 2.4, 44.8, 45.1, 2, 63), -15.0, 2, 0, 2.5)
+    seen = _run([cab, box_rear, box_top])
+    assert len(seen) == 1, {k: len(v) for k, v in seen.items()}

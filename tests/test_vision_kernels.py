@@ -101,30 +101,41 @@ def test_select_spaced_matches_reference():
     assert k > 5
 
 
-def test_pair_graph_and_components_match_reference():
+@pytest.mark.parametrize("late_share", [0.0, 0.5])
+def test_pair_graph_and_components_match_reference(late_share):
+    """late_share: the share of slots that may link late (pairs first seen too far apart, see pair_update)."""
     rng = np.random.default_rng(11)
     n = 60
-    # three rigid "vehicles" in one lane and one in another, plus noise features, over 20 frames
+    # three rigid "vehicles" in one lane and one in another, plus noise features, over 20 frames; vehicles 0
+    # and 1 close in from 6 m (first seen too far apart to link) to under 5 m (close enough to link late)
     base = rng.uniform(-1, 1, (n, 2)) * [0.8, 2.0]
     veh = rng.integers(0, 4, n)
     offs = np.array([[-1.7, 50.0], [-1.7, 56.0], [-1.7, 70.0], [1.7, 52.0]])
     speed = np.array([-15.0, -17.0, -14.0, -16.0])
     lane = np.where(veh == 3, 2, 1).astype(np.int32)
     live = np.sort(rng.choice(n, 50, replace=False)).astype(np.int64)
+    late = rng.random(n) < late_share
     st_a = np.zeros((n, n), np.int8)
     st_b = st_a.copy()
     rng_a = np.zeros((n, n, 4), np.float32)
     rng_b = rng_a.copy()
     y0a = np.zeros((n, n), np.float32)
     y0b = y0a.copy()
+    st_c, rng_c, y0c = st_a.copy(), rng_a.copy(), y0a.copy()  # no slot may link late
     for f in range(20):
         t = f * 0.04
         s = np.zeros((n, 4))
         s[:, :2] = base + offs[veh] + np.column_stack([np.zeros(n), speed[veh] * t]) + rng.normal(0, 0.03, (n, 2))
         motion = rng.integers(0, 3, n).astype(np.int8)  # standing / moving labels at random: the rule is the same
-        pair_update(live, s, lane, motion, st_a, rng_a, y0a, 2.5, 5.0, 1.0, 0.5, 0.02)
-        ref.pair_update_ref(live, s, lane, motion, st_b, rng_b, y0b, 2.5, 5.0, 1.0, 0.5, 0.02)
+        pair_update(live, s, lane, motion, st_a, rng_a, y0a, 2.5, 5.0, 1.0, 0.5, 0.02, late)
+        ref.pair_update_ref(live, s, lane, motion, st_b, rng_b, y0b, 2.5, 5.0, 1.0, 0.5, 0.02, late)
         np.testing.assert_array_equal(st_a, st_b)
+        np.testing.assert_array_equal(rng_a, rng_b)
+        pair_update(live, s, lane, motion, st_c, rng_c, y0c, 2.5, 5.0, 1.0, 0.5, 0.02, np.zeros(n, np.bool_))
+    if late_share:
+        # pairs linked late that otherwise stay apart (they may join vehicles closing in: that is their point)
+        assert np.count_nonzero((st_a == ref.LINKED) & (st_c == ref.FAR)) > 0
+        return
     labels = np.full(n, -1, np.int64)
     components(live, st_a, labels)
     expect = ref.components_ref(live, st_b)
