@@ -813,39 +813,33 @@ class Grouper:
         bx = np.array([tr.last.x for tr in big])
         by = np.array([min(tr.last.y_front, tr.last.y_rear) for tr in big])
         bv = np.array([tr.last.vy for tr in big])
-        # a group of the next lane beside it, moving alike (the small moving ones too)
-        ol, ox, oy, ov = (np.concatenate(a) for a in ((sl, bl), (sx, bx), (sy, by), (sv, bv)))
         with np.errstate(divide="ignore", invalid="ignore"):
+            # a group of the next lane beside it, moving alike (the small moving ones too)
+            ol, ox, oy, ov = (np.concatenate(a) for a in ((sl, bl), (sx, bx), (sy, by), (sv, bv)))
             ratio = ov[None, :] / sv[:, None]
-        beside = ((np.abs(ol[None, :] - sl[:, None]) == 1) & (np.abs(oy[None, :] - sy[:, None]) <= LATE_BESIDE_M)
-                  & (np.abs(ox[None, :] - sx[:, None]) <= LATE_BESIDE_X_M)
-                  & (ratio >= LATE_BESIDE_K[0]) & (ratio <= LATE_BESIDE_K[1])).any(axis=1)
-        hosted = self._could_hold(big, sl, sx, sy, sv)
+            beside = ((np.abs(ol[None, :] - sl[:, None]) == 1) & (np.abs(oy[None, :] - sy[:, None]) <= LATE_BESIDE_M)
+                      & (np.abs(ox[None, :] - sx[:, None]) <= LATE_BESIDE_X_M)
+                      & (ratio >= LATE_BESIDE_K[0]) & (ratio <= LATE_BESIDE_K[1])).any(axis=1)
+            # a vehicle (a group big enough to be one) of its lane or the next that could hold it as a part,
+            # level or elevated
+            need = self.p.min_features - int(self.lights_only)
+            length = np.array([max(tr.own_length, MIN_LENGTH_M, ELEVATED_LENGTH_M) for tr in big])
+            x_lo = np.array([tr.x_lo for tr in big]) - LATE_HOST_X_M
+            x_hi = np.array([tr.x_hi for tr in big]) + LATE_HOST_X_M
+            can = np.array([tr.n_max >= need for tr in big], np.bool_) & (bv != 0)
+            cand = (np.abs(sl[:, None] - bl[None, :]) <= 1) & (sv[:, None] * bv[None, :] > 0) & can[None, :]
+            fx, fy = (self.foot[0], self.foot[1]) if self.foot is not None else (0.0, 0.0)
+            k0 = sv[:, None] / bv[None, :]
+            hosted = np.zeros(cand.shape, np.bool_)
+            for spread in (1.0 - LATE_HOST_K_SPREAD, 1.0, 1.0 + LATE_HOST_K_SPREAD):
+                k = np.clip(spread * k0, 1.0, self.k_max) if self.foot is not None else 1.0
+                gx, gy = fx + (sx[:, None] - fx) / k, fy + (sy[:, None] - fy) / k
+                hosted |= (gx >= x_lo) & (gx <= x_hi) & (gy >= by - 2.0) & (gy <= by + 2.0 + length)
+            hosted = (hosted & cand).any(axis=1)
         for (_, m), ok in zip(small, ~beside & ~hosted):
             if ok:
                 late[m[age[m] >= SETTLED_AGE]] = True
         return late
-
-    def _could_hold(self, big: list[VehicleTrack], sl: np.ndarray, sx: np.ndarray, sy: np.ndarray, sv: np.ndarray
-                    ) -> np.ndarray:
-        """Per small group (lane sl, median place sx, sy, speed sv): whether a vehicle (a group big enough to
-        be one) of its lane or the next could hold it as a part, level or elevated."""
-        hosted = np.zeros(len(sl), np.bool_)
-        need = self.p.min_features - int(self.lights_only)
-        fx, fy = (self.foot[0], self.foot[1]) if self.foot is not None else (0.0, 0.0)
-        for tr in big:
-            o = tr.last
-            if tr.n_max < need or o.vy == 0:
-                continue
-            lo = min(o.y_front, o.y_rear) - 2.0
-            hi = lo + 4.0 + max(tr.own_length, MIN_LENGTH_M, ELEVATED_LENGTH_M)
-            cand = (np.abs(sl - tr.lane_index) <= 1) & (sv * o.vy > 0) & ~hosted
-            for spread in (1.0 - LATE_HOST_K_SPREAD, 1.0, 1.0 + LATE_HOST_K_SPREAD):
-                k = np.clip(spread * sv / o.vy, 1.0, self.k_max) if self.foot is not None else 1.0
-                gx, gy = fx + (sx - fx) / k, fy + (sy - fy) / k
-                hosted |= cand & (gx >= tr.x_lo - LATE_HOST_X_M) & (gx <= tr.x_hi + LATE_HOST_X_M) & (gy >= lo) & (
-                    gy <= hi)
-        return hosted
 
     def _watched(self, tr: VehicleTrack, st: VehicleState, host: int | None, groups: dict[int, np.ndarray]
                  ) -> int | None:
