@@ -213,15 +213,55 @@ def _link_pair(i, j, dx, dy, s, state, rng, y0):
 
 
 @njit(cache=True)
-def group_medians(members, starts, s):
-    """Per group (members[starts[g]:starts[g + 1]]): the median X, Y and along-road speed of its features."""
+def group_medians(members, starts, s, age):
+    """Per group (members[starts[g]:starts[g + 1]]): the median X, Y and along-road speed of its features, and
+    the age of its oldest."""
     ng = starts.shape[0] - 1
-    out = np.empty((ng, 3))
+    out = np.empty((ng, 4))
     for g in range(ng):
         m = members[starts[g]:starts[g + 1]]
         out[g, 0] = _median_of(s[m, 0])
         out[g, 1] = _median_of(s[m, 1])
         out[g, 2] = _median_of(s[m, 3])
+        out[g, 3] = age[m].max()
+    return out
+
+
+@njit(cache=True)
+def _beside(l1, x1, y1, v1, l2, x2, y2, v2):
+    """Whether a group (lane l2, place x2, y2, speed v2) of the next lane moves beside another (see
+    LATE_BESIDE_M)."""
+    r = v2 / v1
+    return (abs(l2 - l1) == 1 and abs(y2 - y1) <= LATE_BESIDE_M and abs(x2 - x1) <= LATE_BESIDE_X_M
+            and LATE_BESIDE_K[0] <= r <= LATE_BESIDE_K[1])
+
+
+@njit(cache=True)
+def alone_groups(sl, sx, sy, sv, big, fx, fy, k_max):
+    """Per small moving group (lane sl, median place sx, sy, speed sv): whether it is alone (see LATE_BESIDE_M):
+    no other of these nor any vehicle group (rows of big: lane, x, near end, speed, x_lo, x_hi, the length it
+    may reach along the road, whether it is big enough to be a vehicle) of the next lane moves beside it, and no
+    vehicle of its lane or the next could hold it as a part, level or elevated (k_max 1: camera unknown)."""
+    out = np.ones(sl.shape[0], np.bool_)
+    for i in range(sl.shape[0]):
+        for j in range(sl.shape[0]):
+            if _beside(sl[i], sx[i], sy[i], sv[i], sl[j], sx[j], sy[j], sv[j]):
+                out[i] = False
+        for j in range(big.shape[0]):
+            if not out[i]:
+                break
+            lj, vj = big[j, 0], big[j, 3]
+            if _beside(sl[i], sx[i], sy[i], sv[i], lj, big[j, 1], big[j, 2], vj):
+                out[i] = False
+            if abs(lj - sl[i]) > 1 or sv[i] * vj <= 0 or big[j, 7] == 0:
+                continue
+            k0 = sv[i] / vj
+            for spread in (1.0 - LATE_HOST_K_SPREAD, 1.0, 1.0 + LATE_HOST_K_SPREAD):
+                k = min(max(spread * k0, 1.0), k_max)
+                gx, gy = fx + (sx[i] - fx) / k, fy + (sy[i] - fy) / k
+                if (big[j, 4] - LATE_HOST_X_M <= gx <= big[j, 5] + LATE_HOST_X_M
+                        and big[j, 2] - 2.0 <= gy <= big[j, 2] + 2.0 + big[j, 6]):
+                    out[i] = False
     return out
 
 
@@ -800,43 +840,23 @@ class Grouper:
             return late
         members = np.concatenate([m for _, m in small])
         starts = np.cumsum([0] + [len(m) for _, m in small])
-        med = group_medians(members, starts, s)
-        moving = np.abs(med[:, 2]) > MOVING_MPS
-        if not moving.any():
+        med = group_medians(members, starts, s, age)
+        keep = np.abs(med[:, 2]) > MOVING_MPS
+        lanes = np.array([self.tracks[vid].lane_index for vid, _ in small])
+        ready = lanes[keep & (med[:, 3] >= SETTLED_AGE)]
+        if len(ready) < 2 or len(np.unique(ready)) == len(ready):  # a late link needs two such groups in a lane
             return late
-        small = [g for g, mv in zip(small, moving) if mv]
-        sx, sy, sv = med[moving].T
-        sl = np.array([self.tracks[vid].lane_index for vid, _ in small])
-        big = [tr for tr in self.tracks.values()
-               if tr.lane_index > 0 and tr.last is not None and tr.last.t == t]
-        bl = np.array([tr.lane_index for tr in big], np.int64)
-        bx = np.array([tr.last.x for tr in big])
-        by = np.array([min(tr.last.y_front, tr.last.y_rear) for tr in big])
-        bv = np.array([tr.last.vy for tr in big])
-        with np.errstate(divide="ignore", invalid="ignore"):
-            # a group of the next lane beside it, moving alike (the small moving ones too)
-            ol, ox, oy, ov = (np.concatenate(a) for a in ((sl, bl), (sx, bx), (sy, by), (sv, bv)))
-            ratio = ov[None, :] / sv[:, None]
-            beside = ((np.abs(ol[None, :] - sl[:, None]) == 1) & (np.abs(oy[None, :] - sy[:, None]) <= LATE_BESIDE_M)
-                      & (np.abs(ox[None, :] - sx[:, None]) <= LATE_BESIDE_X_M)
-                      & (ratio >= LATE_BESIDE_K[0]) & (ratio <= LATE_BESIDE_K[1])).any(axis=1)
-            # a vehicle (a group big enough to be one) of its lane or the next that could hold it as a part,
-            # level or elevated
-            need = self.p.min_features - int(self.lights_only)
-            length = np.array([max(tr.own_length, MIN_LENGTH_M, ELEVATED_LENGTH_M) for tr in big])
-            x_lo = np.array([tr.x_lo for tr in big]) - LATE_HOST_X_M
-            x_hi = np.array([tr.x_hi for tr in big]) + LATE_HOST_X_M
-            can = np.array([tr.n_max >= need for tr in big], np.bool_) & (bv != 0)
-            cand = (np.abs(sl[:, None] - bl[None, :]) <= 1) & (sv[:, None] * bv[None, :] > 0) & can[None, :]
-            fx, fy = (self.foot[0], self.foot[1]) if self.foot is not None else (0.0, 0.0)
-            k0 = sv[:, None] / bv[None, :]
-            hosted = np.zeros(cand.shape, np.bool_)
-            for spread in (1.0 - LATE_HOST_K_SPREAD, 1.0, 1.0 + LATE_HOST_K_SPREAD):
-                k = np.clip(spread * k0, 1.0, self.k_max) if self.foot is not None else 1.0
-                gx, gy = fx + (sx[:, None] - fx) / k, fy + (sy[:, None] - fy) / k
-                hosted |= (gx >= x_lo) & (gx <= x_hi) & (gy >= by - 2.0) & (gy <= by + 2.0 + length)
-            hosted = (hosted & cand).any(axis=1)
-        for (_, m), ok in zip(small, ~beside & ~hosted):
+        small = [g for g, k in zip(small, keep) if k]
+        sx, sy, sv, oldest = np.ascontiguousarray(med[keep].T)
+        sl = lanes[keep]
+        need = self.p.min_features - int(self.lights_only)
+        big = np.array([(tr.lane_index, tr.last.x, min(tr.last.y_front, tr.last.y_rear), tr.last.vy, tr.x_lo, tr.x_hi,
+                         max(tr.own_length, MIN_LENGTH_M, ELEVATED_LENGTH_M), tr.n_max >= need)
+                        for tr in self.tracks.values() if tr.lane_index > 0 and tr.last is not None and tr.last.t == t],
+                       np.float64).reshape(-1, 8)
+        fx, fy = (self.foot[0], self.foot[1]) if self.foot is not None else (0.0, 0.0)
+        alone = alone_groups(sl, sx, sy, sv, big, fx, fy, self.k_max if self.foot is not None else 1.0)
+        for (_, m), ok in zip(small, alone & (oldest >= SETTLED_AGE)):
             if ok:
                 late[m[age[m] >= SETTLED_AGE]] = True
         return late
