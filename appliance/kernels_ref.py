@@ -233,3 +233,25 @@ def group_summary_ref(members, s, px, age, near_m, moving, standing) -> tuple:
     vx, vy = (np.median(s[near, 2]), np.median(s[near, 3])) if len(near) else (s[rep, 2], s[rep, 3])
     xs = s[low, 0]
     return body, rep, ys.max() - ys.min(), vx, vy, np.median(xs), xs.min(), xs.max()
+
+
+def alone_groups_ref(sl, sx, sy, sv, big, fx, fy, k_max) -> np.ndarray:
+    """Same contract as grouping.alone_groups, vectorised over small groups x other groups."""
+    from appliance.grouping import LATE_BESIDE_K, LATE_BESIDE_M, LATE_BESIDE_X_M, LATE_HOST_K_SPREAD, LATE_HOST_X_M
+
+    bl, bx, by, bv, x_lo, x_hi, length, can = big.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ol, ox, oy, ov = (np.concatenate(a) for a in ((sl, bl), (sx, bx), (sy, by), (sv, bv)))
+        ratio = ov[None, :] / sv[:, None]
+        beside = ((np.abs(ol[None, :] - sl[:, None]) == 1) & (np.abs(oy[None, :] - sy[:, None]) <= LATE_BESIDE_M)
+                  & (np.abs(ox[None, :] - sx[:, None]) <= LATE_BESIDE_X_M)
+                  & (ratio >= LATE_BESIDE_K[0]) & (ratio <= LATE_BESIDE_K[1])).any(axis=1)
+        cand = (np.abs(sl[:, None] - bl[None, :]) <= 1) & (sv[:, None] * bv[None, :] > 0) & (can[None, :] != 0)
+        k0 = sv[:, None] / bv[None, :]
+        hosted = np.zeros(cand.shape, np.bool_)
+        for spread in (1.0 - LATE_HOST_K_SPREAD, 1.0, 1.0 + LATE_HOST_K_SPREAD):
+            k = np.clip(spread * k0, 1.0, k_max)
+            gx, gy = fx + (sx[:, None] - fx) / k, fy + (sy[:, None] - fy) / k
+            hosted |= ((gx >= x_lo - LATE_HOST_X_M) & (gx <= x_hi + LATE_HOST_X_M) & (gy >= by - 2.0)
+                       & (gy <= by + 2.0 + length))
+    return ~beside & ~(hosted & cand).any(axis=1)

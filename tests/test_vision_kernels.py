@@ -8,7 +8,8 @@ import pytest
 
 from appliance import kernels_ref as ref
 from appliance.corners import select_spaced
-from appliance.grouping import assign_ids, components, fit_places, group_summary, pair_update
+from appliance.grouping import (alone_groups, assign_ids, components, fit_places, group_medians, group_summary,
+                                pair_update)
 from appliance.tracker import extract_template, track_step
 
 
@@ -275,3 +276,33 @@ def test_group_summary_matches_reference():
         want = ref.group_summary_ref(members, s, px, age, 3.0, 4.0, 1.0)
         np.testing.assert_array_equal(got[0], want[0])
         assert got[1] == want[1] and list(got[2:]) == list(want[2:]), trial
+
+
+def test_group_medians_and_alone_groups_match_reference():
+    """The per-group medians, and the late-link test of small groups against each other and vehicle groups
+    (random lanes, places and speeds around the thresholds, some vehicles too small to hold a part)."""
+    rng = np.random.default_rng(5)
+    s = rng.normal(0, 10, (40, 4))
+    members = rng.permutation(40)[:30].astype(np.int64)
+    starts = np.array([0, 1, 3, 6, 10, 17, 30], np.int64)
+    age = rng.integers(0, 20, 40).astype(np.int32)
+    med = group_medians(members, starts, s, age)
+    for g in range(len(starts) - 1):
+        m = members[starts[g]:starts[g + 1]]
+        np.testing.assert_array_equal(med[g], [np.median(s[m, 0]), np.median(s[m, 1]), np.median(s[m, 3]),
+                                               age[m].max()])
+    verdicts = []
+    for trial in range(300):
+        ns, nb = rng.integers(1, 8), rng.integers(0, 10)
+        sl = rng.integers(1, 4, ns).astype(np.int64)
+        sx, sy = rng.uniform(-7, 7, ns), rng.uniform(20, 90, ns)
+        sv = rng.choice([-1.0, 1.0], ns) * rng.uniform(4, 30, ns)
+        big = np.column_stack([rng.integers(1, 4, nb), rng.uniform(-7, 7, nb), rng.uniform(20, 90, nb),
+                               rng.choice([-1.0, 1.0, 0.0], nb, p=[0.45, 0.45, 0.1]) * rng.uniform(4, 30, nb),
+                               rng.uniform(-7, 0, nb), rng.uniform(0, 7, nb), rng.uniform(18.75, 25, nb),
+                               rng.integers(0, 2, nb)]).astype(np.float64).reshape(-1, 8)
+        k_max = 1.0 if trial % 5 == 0 else 1.9
+        got = alone_groups(sl, sx, sy, sv, big, 0.5, -20.0, k_max)
+        np.testing.assert_array_equal(got, ref.alone_groups_ref(sl, sx, sy, sv, big, 0.5, -20.0, k_max))
+        verdicts += list(got)
+    assert 0.1 < np.mean(verdicts) < 0.9  # both answers are exercised
