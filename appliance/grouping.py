@@ -145,8 +145,11 @@ LONE_SHADOW_SHARE = 0.6  # ... of which this share must find a shadow
 # both moving, where the groups are alone: no group of the next lane moves beside them (within LATE_BESIDE_M
 # along the road and LATE_BESIDE_X_M across, at LATE_BESIDE_K times their speed: a vehicle's flank, shadow or
 # roof seen in the next lane), and no vehicle of their lane or the next could hold them as a part (within
-# LATE_HOST_X_M of its footprint across the road and ELEVATED_LENGTH_M along it, after undoing a height
-# magnification within LATE_HOST_K_SPREAD of their speed ratio).
+# LATE_HOST_X_M of its footprint across the road, and from 2 m short of its near end to 2 m beyond
+# ELEVATED_LENGTH_M or its own length along it, after undoing a height magnification of their speed ratio
+# times 1 - LATE_HOST_K_SPREAD, 1 or 1 + LATE_HOST_K_SPREAD). A FAR pair stays FAR until it links or a feature
+# is replaced: two lone small groups that close in on each other (motorcycles in a queue) may link, and only
+# segmentation parts them again.
 LATE_BESIDE_M = 15.0
 LATE_BESIDE_X_M = 6.0
 LATE_BESIDE_K = (0.7, 1.5)
@@ -230,7 +233,7 @@ def group_medians(members, starts, s, age):
 @njit(cache=True)
 def _beside(l1, x1, y1, v1, l2, x2, y2, v2):
     """Whether a group (lane l2, place x2, y2, speed v2) of the next lane moves beside another (see
-    LATE_BESIDE_M)."""
+    LATE_BESIDE_M); v1 is not 0."""
     r = v2 / v1
     return (abs(l2 - l1) == 1 and abs(y2 - y1) <= LATE_BESIDE_M and abs(x2 - x1) <= LATE_BESIDE_X_M
             and LATE_BESIDE_K[0] <= r <= LATE_BESIDE_K[1])
@@ -238,10 +241,11 @@ def _beside(l1, x1, y1, v1, l2, x2, y2, v2):
 
 @njit(cache=True)
 def alone_groups(sl, sx, sy, sv, big, fx, fy, k_max):
-    """Per small moving group (lane sl, median place sx, sy, speed sv): whether it is alone (see LATE_BESIDE_M):
-    no other of these nor any vehicle group (rows of big: lane, x, near end, speed, x_lo, x_hi, the length it
-    may reach along the road, whether it is big enough to be a vehicle) of the next lane moves beside it, and no
-    vehicle of its lane or the next could hold it as a part, level or elevated (k_max 1: camera unknown)."""
+    """Per small moving group (lane sl, median place sx, sy, speed sv, never 0): whether it is alone (see
+    LATE_BESIDE_M): no other of these nor any vehicle group (rows of big: lane, x, near end, speed, x_lo, x_hi,
+    the length it may reach along the road, whether it is big enough to be a vehicle) of the next lane moves
+    beside it, and no vehicle of its lane or the next could hold it as a part, level or elevated (k_max 1:
+    camera unknown)."""
     out = np.ones(sl.shape[0], np.bool_)
     for i in range(sl.shape[0]):
         for j in range(sl.shape[0]):
@@ -644,6 +648,11 @@ class Grouper:
         h = self.foot[2] if self.foot is not None else 0.0
         self.k_max = min(2.5, h / (h - MAX_HEIGHT_M)) if h > MAX_HEIGHT_M + 0.5 else 2.5
 
+    @property
+    def min_report(self) -> int:
+        """The features a group needs to be reported (at night one fewer: SMALL_S)."""
+        return self.p.min_features - int(self.lights_only)
+
     def reset_slots(self, slots: np.ndarray) -> None:
         """Forget every pair involving slots that now hold new features."""
         self.state[slots, :] = UNSEEN
@@ -720,7 +729,7 @@ class Grouper:
             tr.frames += 1
             tr.n_now = len(members)
             tr.n_max = max(tr.n_max, len(members))
-            if not tr.reported and tr.n_max < p.min_features - int(self.lights_only):
+            if not tr.reported and tr.n_max < self.min_report:
                 if not tr.trajectory:  # too small to be a vehicle yet: only remember where it started
                     tr.trajectory.append((t, float(s[members[0], 0]), float(s[members[0], 1])))
                     tr.start_y = tr.trajectory[0][2]
@@ -832,8 +841,8 @@ class Grouper:
 
     def _late_slots(self, t: float, small: list[tuple[int, np.ndarray]], s: np.ndarray, age: np.ndarray
                     ) -> np.ndarray:
-        """Per slot: a settled feature of a moving group too small to be reported that is alone (see
-        LATE_BESIDE_M), so that it may link late."""
+        """Per slot: whether it may link late (see LATE_BESIDE_M): a settled feature of a settled group of a
+        lane that is too small to be reported, moves, and is alone, where its lane has another such group."""
         late = np.zeros(len(self.fvid), np.bool_)
         small = [(vid, m) for vid, m in small if self.tracks[vid].lane_index > 0]
         if not small:
@@ -849,9 +858,9 @@ class Grouper:
         small = [g for g, k in zip(small, keep) if k]
         sx, sy, sv, oldest = np.ascontiguousarray(med[keep].T)
         sl = lanes[keep]
-        need = self.p.min_features - int(self.lights_only)
+        need = self.min_report
         big = np.array([(tr.lane_index, tr.last.x, min(tr.last.y_front, tr.last.y_rear), tr.last.vy, tr.x_lo, tr.x_hi,
-                         max(tr.own_length, MIN_LENGTH_M, ELEVATED_LENGTH_M), tr.n_max >= need)
+                         max(tr.own_length, ELEVATED_LENGTH_M), tr.n_max >= need)
                         for tr in self.tracks.values() if tr.lane_index > 0 and tr.last is not None and tr.last.t == t],
                        np.float64).reshape(-1, 8)
         fx, fy = (self.foot[0], self.foot[1]) if self.foot is not None else (0.0, 0.0)

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-UNSEEN, LINKED, APART, MERGED_LO, MERGED_HI, FAR = 0, 1, 2, 3, 4, 5
-STANDING, MOVING = 1, 2
+from appliance.grouping import (APART, FAR, LATE_BESIDE_K, LATE_BESIDE_M, LATE_BESIDE_X_M, LATE_HOST_K_SPREAD,
+                                LATE_HOST_X_M, LINKED, MERGED_HI, MERGED_LO, MOVING, STANDING, UNSEEN)
 
 
 def ncc_ref(img: np.ndarray, tmpl: np.ndarray, cx: int, cy: int) -> float:
@@ -237,8 +237,6 @@ def group_summary_ref(members, s, px, age, near_m, moving, standing) -> tuple:
 
 def alone_groups_ref(sl, sx, sy, sv, big, fx, fy, k_max) -> np.ndarray:
     """Same contract as grouping.alone_groups, vectorised over small groups x other groups."""
-    from appliance.grouping import LATE_BESIDE_K, LATE_BESIDE_M, LATE_BESIDE_X_M, LATE_HOST_K_SPREAD, LATE_HOST_X_M
-
     bl, bx, by, bv, x_lo, x_hi, length, can = big.T
     with np.errstate(divide="ignore", invalid="ignore"):
         ol, ox, oy, ov = (np.concatenate(a) for a in ((sl, bl), (sx, bx), (sy, by), (sv, bv)))

@@ -132,6 +132,7 @@ def test_pair_graph_and_components_match_reference(late_share):
         ref.pair_update_ref(live, s, lane, motion, st_b, rng_b, y0b, 2.5, 5.0, 1.0, 0.5, 0.02, late)
         np.testing.assert_array_equal(st_a, st_b)
         np.testing.assert_array_equal(rng_a, rng_b)
+        np.testing.assert_array_equal(y0a, y0b)
         pair_update(live, s, lane, motion, st_c, rng_c, y0c, 2.5, 5.0, 1.0, 0.5, 0.02, np.zeros(n, np.bool_))
     if late_share:
         # pairs linked late that otherwise stay apart (they may join vehicles closing in: that is their point)
@@ -188,7 +189,7 @@ def test_components_with_fragments_match_reference():
         n = int(rng.integers(5, 40))
         state = np.zeros((n, n), np.int8)
         iu = np.triu_indices(n, 1)
-        state[iu] = rng.choice([0, 1, 2, 3, 4], len(iu[0]), p=[0.5, 0.08, 0.38, 0.02, 0.02])
+        state[iu] = rng.choice([0, 1, 2, 3, 4, 5], len(iu[0]), p=[0.45, 0.08, 0.38, 0.02, 0.02, 0.05])
         live = np.sort(rng.choice(n, int(rng.integers(1, n + 1)), replace=False)).astype(np.int64)
         labels = np.full(n, -1, np.int64)
         components(live, state, labels)
