@@ -703,7 +703,7 @@ class Grouper:
         groups: dict[int, np.ndarray] = {}
         ground: dict[int, tuple[float, float, int] | None] = {}
         pending: list = []
-        small: list[tuple[int, np.ndarray]] = []  # groups too small to be reported: (id, members)
+        small: list[tuple[int, np.ndarray]] = []  # groups of a lane too small to be reported: (id, members)
         self.merged_now = set()
         if len(live):
             pair_update(live, s, lane, motion_class(s, age), self.state, self.rng, self.y0, p.connection_lateral_m,
@@ -733,7 +733,8 @@ class Grouper:
                 if not tr.trajectory:  # too small to be a vehicle yet: only remember where it started
                     tr.trajectory.append((t, float(s[members[0], 0]), float(s[members[0], 1])))
                     tr.start_y = tr.trajectory[0][2]
-                small.append((vid, members))
+                if tr.lane_index > 0:
+                    small.append((vid, members))
                 continue
             body, rep, length, vx, vy, x, tr.x_lo, tr.x_hi = group_summary(members, s, px, age, NEAR_REP_M, MOVING_MPS,
                                                                            STANDING_MPS)
@@ -844,7 +845,6 @@ class Grouper:
         """Per slot: whether it may link late (see LATE_BESIDE_M): a settled feature of a settled group of a
         lane that is too small to be reported, moves, and is alone, where its lane has another such group."""
         late = np.zeros(len(self.fvid), np.bool_)
-        small = [(vid, m) for vid, m in small if self.tracks[vid].lane_index > 0]
         if not small:
             return late
         members = np.concatenate([m for _, m in small])
