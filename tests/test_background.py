@@ -149,3 +149,60 @@ def test_a_shadow_belongs_to_a_caster_only_where_the_road_between_them_is_shadow
     img[37:74, 84:dark_to] = (road[37:74, 84:dark_to] * 0.5).astype(np.uint8)
     assert bg.is_shadow(img, pts)
     assert bg.is_attached_shadow(img, pts, caster) == attached
+
+
+@pytest.mark.parametrize("factor, shadow", [(0.12, False), (0.3, True), (0.8, True), (0.92, False)])
+def test_a_shadow_keeps_some_of_the_light_and_takes_some_away(factor, shadow):
+    """SHADOW_RATIO (0.2-0.85): the sky still lights a shadowed road (a box dimmed to 12 % is a black vehicle,
+    not a shadow), and a shadow takes a good share of the sun's light away (dimmed to 92 % is the road under a
+    passing cloud or the camera's gain, which the grouper must not take for a vehicle's shadow)."""
+    road = _road()
+    bg = _learnt(road)
+    pts = np.array([[50.0, 40.0], [100.0, 40.0], [50.0, 70.0], [100.0, 70.0]])
+    img = road.copy()
+    img[37:74, 47:104] = (road[37:74, 47:104] * factor).astype(np.uint8)
+    assert bg.is_shadow(img, pts) == shadow
+
+
+@pytest.mark.parametrize("dark_share, shadow", [(0.1, False), (0.25, True)])
+def test_a_shadow_darkens_a_share_of_its_box(dark_share, shadow):
+    """MIN_DARK_SHARE (15 %): features on a shadow's edge take in sunlit road around them; a box with only a
+    sliver darkened holds no shadow to speak of."""
+    road = _road()
+    bg = _learnt(road)
+    pts = np.array([[50.0, 40.0], [100.0, 40.0], [50.0, 70.0], [100.0, 70.0]])
+    img = road.copy()
+    cols = int(round(dark_share * 57))
+    img[37:74, 47:47 + cols] = (road[37:74, 47:47 + cols] * 0.5).astype(np.uint8)
+    assert bg.is_shadow(img, pts) == shadow
+
+
+@pytest.mark.parametrize("own, shadow", [(0.5, True), (0.85, False)])
+def test_the_road_must_show_through_a_shadow(own, shadow):
+    """MIN_TEXTURE_NCC (0.5): in a shadow the road's own texture correlates with the learnt road's; a dark area
+    whose pattern is mostly its own (share own of its variance from a texture of its own: a vehicle's paint,
+    dirt, a rough shadowed body) is no shadow, though its grey level and spread match the shadowed road's."""
+    road = _road()
+    bg = _learnt(road)
+    pts = np.array([[50.0, 40.0], [100.0, 40.0], [50.0, 70.0], [100.0, 70.0]])
+    texture = np.random.default_rng(21).normal(0, 14, road.shape)
+    mixed = 120 + np.sqrt(1.0 - own) * (road.astype(float) - 120) + np.sqrt(own) * texture
+    img = road.copy()
+    img[37:74, 47:104] = np.clip(0.5 * mixed[37:74, 47:104], 0, 255).astype(np.uint8)
+    assert bg.is_shadow(img, pts) == shadow
+
+
+@pytest.mark.parametrize("road_share, shadow", [(0.75, True), (0.45, False)])
+def test_most_of_a_shadow_shows_the_road_through_it(road_share, shadow):
+    """MIN_CELL_SHARE (60 %): the box is judged in cells, most of which must show the road's texture through
+    the shadow (a few may not: a stain, a dark patch of paint at the caster's edge); a dark area with the road
+    showing in less than half of it is a vehicle beside its own shadow."""
+    road = _road()
+    bg = _learnt(road)
+    pts = np.array([[50.0, 40.0], [100.0, 40.0], [50.0, 70.0], [100.0, 70.0]])
+    texture = 120 + np.random.default_rng(22).normal(0, 14, road.shape)
+    img = road.copy()
+    split = 47 + int(round(road_share * 57 / 6)) * 6
+    img[37:74, 47:split] = (road[37:74, 47:split] * 0.5).astype(np.uint8)
+    img[37:74, split:104] = np.clip(texture[37:74, split:104] * 0.5, 0, 255).astype(np.uint8)
+    assert bg.is_shadow(img, pts) == shadow

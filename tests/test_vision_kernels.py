@@ -307,3 +307,27 @@ def test_group_medians_and_alone_groups_match_reference():
         np.testing.assert_array_equal(got, ref.alone_groups_ref(sl, sx, sy, sv, big, 0.5, -20.0, k_max))
         verdicts += list(got)
     assert 0.1 < np.mean(verdicts) < 0.9  # both answers are exercised
+
+
+@pytest.mark.parametrize("dy, dx, ratio, alone", [
+    (14.0, 3.5, 1.0, False), (16.0, 3.5, 1.0, True),  # LATE_BESIDE_M: 15 m along the road
+    (0.0, 5.5, 1.0, False), (0.0, 6.5, 1.0, True),  # LATE_BESIDE_X_M: 6 m across
+    (0.0, 3.5, 0.65, True), (0.0, 3.5, 0.75, False), (0.0, 3.5, 1.45, False), (0.0, 3.5, 1.55, True),  # _K
+])
+def test_a_small_group_is_alone_only_without_a_next_lane_group_moving_beside_it(dy, dx, ratio, alone):
+    """The late-link windows from both sides: a small group of lane 2 beside one of lane 1 (dy along the road,
+    dx across, at ratio times its speed) may not link late; one further off, or far slower or faster, may."""
+    sl = np.array([2, 1], np.int64)
+    sx, sy = np.array([0.0, -dx]), np.array([50.0, 50.0 + dy])
+    sv = np.array([-20.0, -20.0 * ratio])
+    got = alone_groups(sl, sx, sy, sv, np.zeros((0, 8)), 0.0, -20.0, 1.9)
+    assert bool(got[0]) == alone
+
+
+@pytest.mark.parametrize("gap, alone", [(2.4, False), (2.6, True)])
+def test_a_small_group_beside_a_vehicles_footprint_is_alone_only_beyond_the_host_margin(gap, alone):
+    """LATE_HOST_X_M (2.5 m): a small group this far across the road from a vehicle of its lane, level with it,
+    could be a part of it (a mirror, a flank seen at the lane line) and may not link late; further off it may."""
+    sl, sx, sy, sv = np.array([2], np.int64), np.array([0.0]), np.array([50.0]), np.array([-20.0])
+    big = np.array([[2, gap + 1.0, 45.0, -20.0, gap, gap + 2.0, 4.5, 1]], np.float64)  # lane, x, near, v, x_lo..
+    assert bool(alone_groups(sl, sx, sy, sv, big, 0.0, -20.0, 1.9)[0]) == alone
