@@ -21,6 +21,12 @@ def _learnt(road: np.ndarray, noise_seed: int = 1) -> Background:
     return bg
 
 
+def _box_scene() -> tuple[np.ndarray, Background, np.ndarray]:
+    """A textured road, its learnt background, and four points whose test box is rows 37-73, columns 47-103."""
+    road = _road()
+    return road, _learnt(road), np.array([[50.0, 40.0], [100.0, 40.0], [50.0, 70.0], [100.0, 70.0]])
+
+
 def test_background_learns_the_empty_road_through_passing_vehicles():
     road = _road()
     bg = Background()
@@ -38,9 +44,7 @@ def test_background_learns_the_empty_road_through_passing_vehicles():
 
 
 def test_shadow_is_told_from_dark_and_bright_vehicles():
-    road = _road()
-    bg = _learnt(road)
-    pts = np.array([[50.0, 40.0], [100.0, 40.0], [50.0, 70.0], [100.0, 70.0]])
+    road, bg, pts = _box_scene()
     shadow = road.copy()
     shadow[40:71, 50:101] = (road[40:71, 50:101] * 0.5).astype(np.uint8)
     assert bg.is_shadow(shadow, pts)
@@ -93,9 +97,7 @@ def test_two_parts_are_one_body_only_where_the_image_between_them_is_off_the_roa
 def test_a_shadow_may_hold_a_little_of_its_bright_caster_but_not_more(bright_share, shadow):
     """MAX_BRIGHT_SHARE (8 %): a shadow's box may take in a sliver of the bright vehicle casting it; a box with
     more of it brightened is a vehicle there."""
-    road = _road()
-    bg = _learnt(road)
-    pts = np.array([[50.0, 40.0], [100.0, 40.0], [50.0, 70.0], [100.0, 70.0]])
+    road, bg, pts = _box_scene()
     img = road.copy()
     img[37:74, 47:104] = (road[37:74, 47:104] * 0.5).astype(np.uint8)  # the whole box (points + 3 px) shadowed
     cols = int(round(bright_share * 57))  # full-height strips at the box's left edge: the caster's side
@@ -108,9 +110,7 @@ def test_a_shadow_dims_the_road_by_one_factor(second_share, shadow):
     """MIN_CORE_SHARE (65 %): a shadow dims the road it covers by one factor (the sky's share of light); a box
     dimmed half by 0.5 and half by 0.72 (a dark vehicle's paint over the road's texture would spread the ratios
     as much) is no shadow, one with 30 % of its dark pixels off the main factor still is (penumbra, edges)."""
-    road = _road()
-    bg = _learnt(road)
-    pts = np.array([[50.0, 40.0], [100.0, 40.0], [50.0, 70.0], [100.0, 70.0]])
+    road, bg, pts = _box_scene()
     img = road.copy()
     split = 47 + int(round((1.0 - second_share) * 57))
     img[37:74, 47:split] = (road[37:74, 47:split] * 0.5).astype(np.uint8)
@@ -156,9 +156,7 @@ def test_a_shadow_keeps_some_of_the_light_and_takes_some_away(factor, shadow):
     """SHADOW_RATIO (0.2-0.85): the sky still lights a shadowed road (a box dimmed to 12 % is a black vehicle,
     not a shadow), and a shadow takes a good share of the sun's light away (dimmed to 92 % is the road under a
     passing cloud or the camera's gain, which the grouper must not take for a vehicle's shadow)."""
-    road = _road()
-    bg = _learnt(road)
-    pts = np.array([[50.0, 40.0], [100.0, 40.0], [50.0, 70.0], [100.0, 70.0]])
+    road, bg, pts = _box_scene()
     img = road.copy()
     img[37:74, 47:104] = (road[37:74, 47:104] * factor).astype(np.uint8)
     assert bg.is_shadow(img, pts) == shadow
@@ -168,9 +166,7 @@ def test_a_shadow_keeps_some_of_the_light_and_takes_some_away(factor, shadow):
 def test_a_shadow_darkens_a_share_of_its_box(dark_share, shadow):
     """MIN_DARK_SHARE (15 %): features on a shadow's edge take in sunlit road around them; a box with only a
     sliver darkened holds no shadow to speak of."""
-    road = _road()
-    bg = _learnt(road)
-    pts = np.array([[50.0, 40.0], [100.0, 40.0], [50.0, 70.0], [100.0, 70.0]])
+    road, bg, pts = _box_scene()
     img = road.copy()
     cols = int(round(dark_share * 57))
     img[37:74, 47:47 + cols] = (road[37:74, 47:47 + cols] * 0.5).astype(np.uint8)
@@ -182,9 +178,7 @@ def test_the_road_must_show_through_a_shadow(own, shadow):
     """MIN_TEXTURE_NCC (0.5): in a shadow the road's own texture correlates with the learnt road's; a dark area
     whose pattern is mostly its own (share own of its variance from a texture of its own: a vehicle's paint,
     dirt, a rough shadowed body) is no shadow, though its grey level and spread match the shadowed road's."""
-    road = _road()
-    bg = _learnt(road)
-    pts = np.array([[50.0, 40.0], [100.0, 40.0], [50.0, 70.0], [100.0, 70.0]])
+    road, bg, pts = _box_scene()
     texture = np.random.default_rng(21).normal(0, 14, road.shape)
     mixed = 120 + np.sqrt(1.0 - own) * (road.astype(float) - 120) + np.sqrt(own) * texture
     img = road.copy()
@@ -197,9 +191,7 @@ def test_most_of_a_shadow_shows_the_road_through_it(road_share, shadow):
     """MIN_CELL_SHARE (60 %): the box is judged in cells, most of which must show the road's texture through
     the shadow (a few may not: a stain, a dark patch of paint at the caster's edge); a dark area with the road
     showing in less than half of it is a vehicle beside its own shadow."""
-    road = _road()
-    bg = _learnt(road)
-    pts = np.array([[50.0, 40.0], [100.0, 40.0], [50.0, 70.0], [100.0, 70.0]])
+    road, bg, pts = _box_scene()
     texture = 120 + np.random.default_rng(22).normal(0, 14, road.shape)
     img = road.copy()
     split = 47 + int(round(road_share * 57 / 6)) * 6
