@@ -33,6 +33,10 @@ STANDING, MOVING = 1, 2
 STANDING_MPS = 1.0
 MOVING_MPS = 4.0
 NEAR_REP_M = 3.0  # features this close along the road to the representative one give the velocity
+# ... and those this close its spot speed, the speed reported at count lines and loops: the lowest on the
+# vehicle (bumper, grille). A feature at height h moves H / (H - h) times as fast in projection as the road
+# under it (camera height H); the NEAR_REP_M band takes in lights and bonnet too and reads 2-5 % fast.
+SPOT_M = 1.0
 MIN_TRAVEL_M = 1.0  # a group is reported once it has moved this far (static texture never does)
 MIN_SPEED_MPS = 1.5  # ... and is moving at least this fast (vehicles are found while they move)
 # At night (Grouper.lights_only) a vehicle is seen by its lights alone: a group one feature short of
@@ -492,13 +496,13 @@ def _median_of(a):
 
 
 @njit(cache=True)
-def group_summary(members, s, px, age, near_m, moving, standing):
+def group_summary(members, s, px, age, near_m, spot_m, moving, standing):
     """One group's moving body and near end: its features without those standing still (below ``standing``
     while their median moves above ``moving``: road texture just uncovered beside a vehicle, linked before its
     speed showed, is not on it), its lowest feature in the image (nearest the camera: the near end), and the
     low part within ``near_m`` of it along the road, which gives the velocity (its settled features) and the
-    place and footprint across the road. Returns (body, near end's slot, body's span along the road, vx, vy,
-    x, x_lo, x_hi)."""
+    place and footprint across the road; the settled features within ``spot_m`` give the spot speed (else it
+    is vy). Returns (body, near end's slot, body's span along the road, vx, vy, spot vy, x, x_lo, x_hi)."""
     v = np.abs(s[members, 3])
     body = members
     if _median_of(v) > moving:
@@ -514,7 +518,8 @@ def group_summary(members, s, px, age, near_m, moving, standing):
         y_hi = max(y_hi, s[i, 1])
     low = np.empty(body.shape[0], np.int64)
     near = np.empty(body.shape[0], np.int64)
-    n_low = n_near = 0
+    spot = np.empty(body.shape[0], np.int64)
+    n_low = n_near = n_spot = 0
     for i in body:
         if abs(s[i, 1] - s[rep, 1]) < near_m:
             low[n_low] = i
@@ -522,11 +527,15 @@ def group_summary(members, s, px, age, near_m, moving, standing):
             if age[i] >= 3:
                 near[n_near] = i
                 n_near += 1
+                if abs(s[i, 1] - s[rep, 1]) < spot_m:
+                    spot[n_spot] = i
+                    n_spot += 1
     vx, vy = s[rep, 2], s[rep, 3]
     if n_near:
         vx, vy = _median_of(s[near[:n_near], 2]), _median_of(s[near[:n_near], 3])
+    vs = _median_of(s[spot[:n_spot], 3]) if n_spot else vy
     xs = s[low[:n_low], 0]
-    return body, rep, y_hi - y_lo, vx, vy, _median_of(xs), xs.min(), xs.max()
+    return body, rep, y_hi - y_lo, vx, vy, vs, _median_of(xs), xs.min(), xs.max()
 
 
 @njit(cache=True)
@@ -736,8 +745,8 @@ class Grouper:
                 if tr.lane_index > 0:
                     small.append((vid, members))
                 continue
-            body, rep, length, vx, vy, x, tr.x_lo, tr.x_hi = group_summary(members, s, px, age, NEAR_REP_M, MOVING_MPS,
-                                                                           STANDING_MPS)
+            body, rep, length, vx, vy, spot, x, tr.x_lo, tr.x_hi = group_summary(
+                members, s, px, age, NEAR_REP_M, SPOT_M, MOVING_MPS, STANDING_MPS)
             lz = self.zones.by_index(tr.lane_index) if tr.lane_index > 0 else None
             sign = lz.sign if lz is not None else -1
             rep_y = float(s[rep, 1])
@@ -762,7 +771,7 @@ class Grouper:
             ground[vid] = tr.ground
             st = VehicleState(
                 id=vid, t=t, x=x, y_front=front, y_rear=rear, vx=vx,
-                vy=vy, length=length, n_features=int(len(members)),
+                vy=vy, length=length, n_features=int(len(members)), spot_vy=float(spot),
             )
             if abs(vy) >= MOVING_MPS:
                 tr.fast_t = t

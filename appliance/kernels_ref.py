@@ -220,7 +220,7 @@ def fit_places_ref(members, age, s, fit, fit_vid, vid, d, cy, k_max, frames, min
     return float(places[1:][close][-1]) if close.any() else float(np.median(places))
 
 
-def group_summary_ref(members, s, px, age, near_m, moving, standing) -> tuple:
+def group_summary_ref(members, s, px, age, near_m, spot_m, moving, standing) -> tuple:
     """Same contract as grouping.group_summary, with NumPy on the group's features."""
     v = np.abs(s[members, 3])
     body = members
@@ -231,8 +231,10 @@ def group_summary_ref(members, s, px, age, near_m, moving, standing) -> tuple:
     low = body[np.abs(ys - s[rep, 1]) < near_m]
     near = low[age[low] >= 3]
     vx, vy = (np.median(s[near, 2]), np.median(s[near, 3])) if len(near) else (s[rep, 2], s[rep, 3])
+    spot = near[np.abs(s[near, 1] - s[rep, 1]) < spot_m]
+    vs = np.median(s[spot, 3]) if len(spot) else vy
     xs = s[low, 0]
-    return body, rep, ys.max() - ys.min(), vx, vy, np.median(xs), xs.min(), xs.max()
+    return body, rep, ys.max() - ys.min(), vx, vy, vs, np.median(xs), xs.min(), xs.max()
 
 
 def alone_groups_ref(sl, sx, sy, sv, big, fx, fy, k_max) -> np.ndarray:

@@ -63,10 +63,11 @@ class MeasureUpdate:
 class _Track:
     first_t: float
     first_wall: float
-    prev: tuple  # (t, x, y_front, y_rear, vy)
+    prev: tuple  # (t, x, y_front, y_rear, spot speed)
     history: LaneHistory
     lane_raw: int | None
-    speeds: list[float] = field(default_factory=list)
+    speeds: list[float] = field(default_factory=list)  # its speeds (|vy|), for carrying it on
+    spot_speeds: list[float] = field(default_factory=list)  # its spot speeds, for its record
     lengths: list[float] = field(default_factory=list)
     counted_lane: int | None = None  # lane of its first count-line crossing
     counted: set = field(default_factory=set)  # lanes whose count line it crossed (staggered lines)
@@ -107,6 +108,11 @@ def _cut(seg: tuple, a: float, b: float) -> tuple | None:
     return lane, a, b, y0 + f0 * (y1 - y0), y0 + f1 * (y1 - y0)
 
 
+def _spot_speed(v: VehicleState) -> float:
+    """A vehicle's spot speed (m/s): its lowest features' (see VehicleState.spot_vy), else its own."""
+    return abs(v.vy if v.spot_vy is None else v.spot_vy)
+
+
 def _states_of(v: VehicleState) -> list[VehicleState]:
     """A vehicle's states to process: a finished vehicle may carry its whole trajectory."""
     traj = getattr(v, "trajectory", None)
@@ -116,7 +122,7 @@ def _states_of(v: VehicleState) -> list[VehicleState]:
     for p in traj:
         t, x, yf = float(p[0]), float(p[1]), float(p[2])
         out.append(VehicleState(v.id, t, x, yf, yf - (v.y_front - v.y_rear), v.vx, v.vy, v.length, v.n_features,
-                                entered=v.entered))
+                                entered=v.entered, spot_vy=v.spot_vy))
     if out[-1].t < v.t:
         out.append(v)
     return out
@@ -222,9 +228,9 @@ class TrafficMeasures:
         """Move one vehicle to state v (in lane ``raw`` by position); returns its Edie segment
         (lane, w0, w1, y0, y1) or None."""
         tr = self.tracks.get(v.id)
-        speed = abs(v.vy)
+        speed, spot = abs(v.vy), _spot_speed(v)
         if tr is None:
-            tr = self.tracks[v.id] = _Track(v.t, v.t + offset, (v.t, v.x, v.y_front, v.y_rear, speed),
+            tr = self.tracks[v.id] = _Track(v.t, v.t + offset, (v.t, v.x, v.y_front, v.y_rear, spot),
                                             LaneHistory(), raw, first_y=v.y_front, entered=v.entered,
                                             covered_from=v.t + offset)
             prev = None
@@ -234,18 +240,19 @@ class TrafficMeasures:
                 return None  # repeated or out-of-order state
         lane = tr.history.update(raw)
         tr.speeds.append(speed)
+        tr.spot_speeds.append(spot)
         tr.lengths.append(v.length)
         if self.keep_trajectories and len(tr.trajectory) < MAX_TRAJECTORY_POINTS:
             tr.trajectory.append((v.t, v.x, v.y_front))
         lo, hi = min(v.y_front, v.y_rear), max(v.y_front, v.y_rear)
-        cur = (v.t, lo, hi, speed, v.length)
+        cur = (v.t, lo, hi, spot, v.length)
         pl = None if prev is None else (prev[0], min(prev[2], prev[3]), max(prev[2], prev[3]))
         for lp in self.loops:
             if lp.cfg.lane != raw and v.id not in lp.active:
                 continue  # neither in this loop's lane nor on it
             out.loop_events += lp.update(v.id, raw == lp.cfg.lane, pl, cur, offset,
                                          was_in_lane=tr.lane_raw == lp.cfg.lane)
-        tr.prev = (v.t, v.x, v.y_front, v.y_rear, speed)
+        tr.prev = (v.t, v.x, v.y_front, v.y_rear, spot)
         tr.lane_raw = raw
         if prev is None:
             if v.entered and raw is not None:
@@ -266,14 +273,14 @@ class TrafficMeasures:
             return
         s = (c - y0) / (y1 - y0)
         tc = prev[0] + s * (v.t - prev[0])
-        speed = (prev[4] + s * (abs(v.vy) - prev[4])) * 3.6
+        speed = (prev[4] + s * (_spot_speed(v) - prev[4])) * 3.6
         x = prev[1] + s * (v.x - prev[1])
         self._count(v, tr, lane, tc, speed, x, offset, out)
 
     def _check_straddle(self, v: VehicleState, lane: int, offset: float, tr: _Track, out: MeasureUpdate) -> None:
         """A vehicle entering already over its count line (front past it, rear short of it) counts now."""
         if self._past_line(lane, v.y_front) and not self._past_line(lane, v.y_rear):
-            self._count(v, tr, lane, v.t, abs(v.vy) * 3.6, v.x, offset, out)
+            self._count(v, tr, lane, v.t, _spot_speed(v) * 3.6, v.x, offset, out)
 
     def _past_line(self, lane: int, y: float) -> bool:
         """Whether along-road position y is on or past the lane's count line in its direction of travel."""
@@ -423,7 +430,7 @@ class TrafficMeasures:
         for c in tr.crossed:
             c.length_m = length
         dur = v.t - tr.first_t
-        speed = float(np.median(tr.speeds)) * 3.6
+        speed = float(np.median(tr.spot_speeds)) * 3.6
         lane = tr.counted_lane if tr.counted_lane is not None else tr.history.lane
         out.vehicles.append(VehicleRecord(
             id=v.id, lane=lane if lane is not None else 0, wall_entry=tr.first_wall, wall_exit=tr.first_wall + dur,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -551,3 +552,29 @@ def test_period_length_classes_use_the_length_over_the_whole_passage():
     counted = [p for p in periods if p.lane == 1 and p.count]
     assert sum(p.count for p in counted) == n
     assert all(p.class_counts == {"small": p.count} for p in counted)
+
+
+def test_spot_speeds_are_the_lowest_features_and_edie_the_positions():
+    """Count lines, loops and vehicle records give a vehicle's spot speed (its lowest features', spot_vy): the
+    low part's velocity (vy) takes in lights and bonnet, which move faster in projection (here 5 % faster).
+    Edie's space-mean speed comes from the positions, as before."""
+    site = make_site()
+    tm = TrafficMeasures(site)
+    crossings, events, records, periods = [], [], [], []
+    done: set[int] = set()
+    for i in range(int(round(400 * 10)) + 1):
+        t = i / 10
+        states = [replace(v, vy=v.vy * 1.05, spot_vy=v.vy, finished=v.y_front < 5.0)
+                  for v in platoon_states(t, speed=20.0, headway=3.0, length=4.5, lane=1, phase=0.37)
+                  if v.id not in done]
+        done |= {v.id for v in states if v.finished}
+        upd = tm.step(t, EPOCH + t, states)
+        crossings += upd.crossings
+        events += upd.loop_events
+        records += upd.vehicles
+        periods += upd.periods
+    assert len(crossings) > 100 and all(c.speed_kmh == pytest.approx(72.0) for c in crossings)
+    assert all(e.speed_kmh == pytest.approx(72.0, rel=1e-6) for e in events if e.loop_id in ("L1", "L1b"))
+    assert records and all(r.speed_kmh == pytest.approx(72.0) for r in records)
+    p = [p for p in periods if p.lane == 1][0]
+    assert p.time_mean_speed_kmh == pytest.approx(72.0) and p.speed_kmh == pytest.approx(72.0, rel=1e-9)

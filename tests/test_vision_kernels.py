@@ -263,20 +263,23 @@ def test_fit_places_falls_back_to_the_median_and_waits_for_a_late_joiner_further
 
 
 def test_group_summary_matches_reference():
-    """Random groups, some with standing features among moving ones: the same body, near end, span, velocity
-    and place across the road as the NumPy reference."""
+    """Random groups, some with standing features among moving ones: the same body, near end, span, velocity,
+    spot speed and place across the road as the NumPy reference."""
     rng = np.random.default_rng(13)
-    for trial in range(60):
+    own_spot = 0
+    for trial in range(150):
         n = 40
         s = np.column_stack([rng.uniform(-4, 4, n), rng.uniform(20, 80, n), rng.normal(0, 0.3, n),
                              np.where(rng.random(n) < 0.2, rng.normal(0, 0.4, n), rng.normal(-15, 2, n))])
         px = np.column_stack([rng.uniform(0, 640, n), rng.uniform(0, 480, n)])
         age = rng.integers(0, 8, n).astype(np.int32)
         members = np.sort(rng.choice(n, int(rng.integers(1, 15)), replace=False)).astype(np.int64)
-        got = group_summary(members, s, px, age, 3.0, 4.0, 1.0)
-        want = ref.group_summary_ref(members, s, px, age, 3.0, 4.0, 1.0)
+        got = group_summary(members, s, px, age, 3.0, 1.0, 4.0, 1.0)
+        want = ref.group_summary_ref(members, s, px, age, 3.0, 1.0, 4.0, 1.0)
         np.testing.assert_array_equal(got[0], want[0])
         assert got[1] == want[1] and list(got[2:]) == list(want[2:]), trial
+        own_spot += got[5] != got[4]
+    assert own_spot >= 5  # the spot speed comes from its own band of features, not only the velocity's
 
 
 def test_group_medians_and_alone_groups_match_reference():
