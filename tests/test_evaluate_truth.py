@@ -115,3 +115,19 @@ def test_crossings_are_matched_with_the_truths_and_the_odd_ones_listed(scene, tm
                         str(out), "--crossings"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr[-2000:]
     assert "Count-line crossings vs the truth's" in r.stdout and "extra  lane" not in r.stdout
+
+
+def test_spot_speeds_at_the_count_line_are_compared_with_the_truths(scene, tmp_path):
+    """The perfect tracker's spot speeds are the truth's; read 5 % fast, every one is 5 % off."""
+    from tools.evaluate import compare_crossings_with_truth, format_spot_speeds, spot_speed_errors
+
+    out = tmp_path / "perfect.csv"
+    write_results(replay_truth_tracks(scene.truth_dir, load_site(scene.site)), str(out), vehicles=False)
+    truth, res = load_truth(scene.truth_dir), load_results(out)
+    errors = spot_speed_errors(compare_crossings_with_truth(truth, res["crossings"]))
+    assert sum(len(e) for e in errors.values()) >= 5
+    assert all(abs(x) < 0.5 for e in errors.values() for x in e)
+    fast = [dict(c, speed_kmh=float(c["speed_kmh"]) * 1.05) for c in res["crossings"]]
+    errors = spot_speed_errors(compare_crossings_with_truth(truth, fast))
+    assert all(x == pytest.approx(5.0, abs=0.5) for e in errors.values() for x in e)
+    assert "median +5.0 %" in format_spot_speeds(errors)

@@ -12,6 +12,7 @@ import click
 import numpy as np
 
 TABLE1_BANDS = (2.5, 5.0, 10.0, 15.0, 20.0, 25.0)  # % bands of the paper's Table 1
+SPOT_MIN_KMH = 15.0  # spot speeds are compared for vehicles at least this fast (a crawl's relative error says little)
 
 
 class EvaluateError(ValueError):
@@ -285,6 +286,26 @@ def format_crossing_lists(cmp: CountComparison, near_s: float = 1.0) -> str:
     return "\n".join(lines)
 
 
+def spot_speed_errors(cmp: CountComparison) -> dict[int, list[float]]:
+    """Per lane: the spot-speed errors (%) of the matched crossings, result against truth, for vehicles the
+    truth has at SPOT_MIN_KMH or faster."""
+    out: dict[int, list[float]] = {}
+    for h, r in cmp.matches:
+        if r.get("speed_kmh") is None or float(h["speed_kmh"]) < SPOT_MIN_KMH:
+            continue
+        out.setdefault(int(h["lane"]), []).append(100.0 * (float(r["speed_kmh"]) / float(h["speed_kmh"]) - 1.0))
+    return out
+
+
+def format_spot_speeds(errors: dict[int, list[float]]) -> str:
+    lines = []
+    for lane, e in sorted(errors.items()):
+        a = np.array(e)
+        lines.append(f"  lane {lane}: median {np.median(a):+.1f} %, mean |error| {np.abs(a).mean():.1f} %, "
+                     f"within 5 % {100 * np.mean(np.abs(a) <= 5.0):.0f} % of {len(a)}")
+    return "\n".join(lines)
+
+
 def loop_occupancy_vs_counts(counts: dict, loop_events: list[dict], fps: float | None = None) -> list[dict]:
     """Per lane: the results' loop occupancy over the hand count's occupancy frame range, next to the
     hand-count file's (mask-based) value."""
@@ -363,6 +384,8 @@ def evaluate(results_path: str, truth_dir: str | None, counts_path: str | None, 
                 click.echo("\nCount-line crossings vs the truth's (match = same lane within 1 s):")
                 click.echo(format_count_report(xc, lists=False, ref="truth"))
                 click.echo(format_crossing_lists(xc))
+                click.echo(f"\nSpot speeds at the count line (matched vehicles at {SPOT_MIN_KMH:.0f} km/h or more):")
+                click.echo(format_spot_speeds(spot_speed_errors(xc)))
             from tools import plots
 
             if plot_png:
