@@ -33,9 +33,9 @@ STANDING, MOVING = 1, 2
 STANDING_MPS = 1.0
 MOVING_MPS = 4.0
 NEAR_REP_M = 3.0  # features this close along the road to the representative one give the velocity
-# ... and those this close its spot speed, the speed reported at count lines and loops: the lowest on the
-# vehicle (bumper, grille). A feature at height h moves H / (H - h) times as fast in projection as the road
-# under it (camera height H); the NEAR_REP_M band takes in lights and bonnet too and reads 2-5 % fast.
+# ... and those this close its spot speed, reported at count lines, presence loops and in vehicle records: the
+# lowest on the vehicle (bumper, grille). A feature at height h moves H / (H - h) times as fast in projection as
+# the road under it (camera height H); the NEAR_REP_M band takes in lights and bonnet too and reads 2-5 % fast.
 SPOT_M = 1.0
 MIN_TRAVEL_M = 1.0  # a group is reported once it has moved this far (static texture never does)
 MIN_SPEED_MPS = 1.5  # ... and is moving at least this fast (vehicles are found while they move)

@@ -47,8 +47,8 @@ class VehicleState:
     # detection zone, not where a vehicle was lost: if it already straddles its count line (a receding
     # vehicle entering over the image's bottom edge, its front far ahead) it counts there
     entered: bool = False
-    # along-road speed of its lowest features (m/s): the spot speed reported at count lines and loops (vy is
-    # its low part's, taking in parts higher up that move faster in projection); None: vy
+    # along-road speed of its lowest features (m/s): the spot speed reported at count lines, presence loops and
+    # in vehicle records (vy is its low part's, taking in parts higher up that move faster in projection); None: vy
     spot_vy: float | None = None
 
 

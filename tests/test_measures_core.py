@@ -557,8 +557,9 @@ def test_period_length_classes_use_the_length_over_the_whole_passage():
 def test_spot_speeds_are_the_lowest_features_and_edie_the_positions():
     """Count lines, loops and vehicle records give a vehicle's spot speed (its lowest features', spot_vy): the
     low part's velocity (vy) takes in lights and bonnet, which move faster in projection (here 5 % faster).
-    Edie's space-mean speed comes from the positions, as before."""
-    site = make_site()
+    Edie's space-mean speed comes from the positions, as before. (A presence loop: a speed trap times its two
+    loops.)"""
+    site = make_site(loops=[{"id": "L1", "lane": 1, "channel": 1, "y_m": 30.0, "length_m": 1.8}])
     tm = TrafficMeasures(site)
     crossings, events, records, periods = [], [], [], []
     done: set[int] = set()
@@ -574,7 +575,17 @@ def test_spot_speeds_are_the_lowest_features_and_edie_the_positions():
         records += upd.vehicles
         periods += upd.periods
     assert len(crossings) > 100 and all(c.speed_kmh == pytest.approx(72.0) for c in crossings)
-    assert all(e.speed_kmh == pytest.approx(72.0, rel=1e-6) for e in events if e.loop_id in ("L1", "L1b"))
+    assert len(events) > 100 and all(e.speed_kmh == pytest.approx(72.0, rel=1e-6) for e in events)
     assert records and all(r.speed_kmh == pytest.approx(72.0) for r in records)
     p = [p for p in periods if p.lane == 1][0]
     assert p.time_mean_speed_kmh == pytest.approx(72.0) and p.speed_kmh == pytest.approx(72.0, rel=1e-9)
+
+
+def test_a_line_crossed_before_the_first_report_counts_at_the_reports_spot_speed():
+    """The points a vehicle brings with its first report (crossed before it was reported) count at its spot
+    speed too."""
+    tm = TrafficMeasures(make_site(loops=[]))
+    trajectory = [(t / 10, -2.5, 60.0 - 20.0 * t / 10) for t in range(8)]  # 60 m down to 46 m: over the line
+    first = VehicleState(7, 0.8, -2.5, 44.0, 48.5, 0.0, -21.0, 4.5, 5, trajectory=trajectory, spot_vy=-20.0)
+    crossings = tm.step(0.8, EPOCH + 0.8, [first]).crossings
+    assert len(crossings) == 1 and crossings[0].speed_kmh == pytest.approx(72.0)

@@ -298,6 +298,9 @@ def spot_speed_errors(cmp: CountComparison) -> dict[int, list[float]]:
 
 
 def format_spot_speeds(errors: dict[int, list[float]]) -> str:
+    """Per lane: the median spot-speed error, the mean |error| and the share within 5 %."""
+    if not errors:
+        return "  none"
     lines = []
     for lane, e in sorted(errors.items()):
         a = np.array(e)
