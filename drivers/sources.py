@@ -4,9 +4,11 @@ and a synthetic live source, with capture timestamps, timeouts and reconnect wit
 from __future__ import annotations
 
 import logging
+import math
 import os
 import threading
 import time
+from collections import deque
 from pathlib import Path
 from typing import Callable
 from urllib.parse import parse_qs
@@ -26,6 +28,44 @@ REPLAY_START_WALL = 1767225600.0
 
 class SourceError(RuntimeError):
     """A source cannot be opened or does not deliver what the configuration asks for."""
+
+
+# A container clock that steps further than this between two frames is broken (a camera that dropped frames
+# steps a few hundred ms at most)
+MAX_CLOCK_STEP_S = 2.0
+
+
+class FileClock:
+    """Capture times of a file's frames from its container timestamps (POS_MSEC), counted from the first
+    frame's: a camera's recording that dropped frames has gaps there, which a frame counter would close up
+    (speeds read high across them, and the clock falls behind). A frame whose timestamp is missing, repeats,
+    goes back or steps more than MAX_CLOCK_STEP_S is timed one usual interval (the median of the last steps)
+    after the one before, and the clock goes on from there. Without container timestamps (image sequences, a
+    rate given by hand) every frame is 1 / fps after the one before."""
+
+    def __init__(self, fps: float, use_container: bool = True):
+        self.use_container = use_container
+        self.steps: deque[float] = deque([1.0 / fps], maxlen=25)
+        self.origin: float | None = None
+        self.last = -math.inf
+
+    def next(self, cap: cv2.VideoCapture) -> float:
+        """The time (s) of the frame just read from cap."""
+        first = not math.isfinite(self.last)
+        t = 0.0 if first else self.last + float(np.median(self.steps))
+        ms = cap.get(cv2.CAP_PROP_POS_MSEC) if self.use_container else None
+        if ms is not None and math.isfinite(ms):
+            if self.origin is None:
+                self.origin = ms / 1000.0 - t
+            pts = ms / 1000.0 - self.origin
+            if first or 0.0 < pts - self.last <= MAX_CLOCK_STEP_S:
+                if not first:
+                    self.steps.append(pts - self.last)
+                t = pts
+            else:
+                self.origin += pts - t
+        self.last = t
+        return t
 
 
 def _grey(img: np.ndarray) -> np.ndarray:
@@ -77,7 +117,7 @@ class CaptureSource:
         self.start_wall = REPLAY_START_WALL if start_wall is None else start_wall
         self.cap: cv2.VideoCapture | None = None
         self.fps = cfg.fps
-        self._index = 0
+        self._clock = FileClock(cfg.fps, use_container=False)
         self._seq = 0
         self._t0_mono = 0.0
 
@@ -113,7 +153,7 @@ class CaptureSource:
             if rate and 0 < rate < 1000:
                 self.fps = float(rate)
         self.cap = cap
-        self._index = 0
+        self._clock = FileClock(self.fps, use_container=self.kind == "file")
         self._t0_mono = time.monotonic()
 
     def _check_v4l2(self, cap: cv2.VideoCapture) -> None:
@@ -137,7 +177,7 @@ class CaptureSource:
         if self.live:
             t, wall = time.monotonic(), time.time()
         else:
-            t = self._index / self.fps
+            t = self._clock.next(self.cap)
             if self.cfg.realtime:
                 delay = self._t0_mono + t - time.monotonic()
                 if delay > 0:
@@ -145,7 +185,6 @@ class CaptureSource:
                 t, wall = self._t0_mono + t, time.time()
             else:
                 wall = self.start_wall + t
-        self._index += 1
         self._seq += 1
         return Frame(seq=self._seq, t=t, wall=wall, image=grey)
 

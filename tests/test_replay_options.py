@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import click
+import numpy as np
 import pytest
 
 from test_measures_core import make_site
 from test_replay_badinput import write_avi
+from drivers.sources import MAX_CLOCK_STEP_S
 from tools.replay import DEFAULT_START_WALL, VideoFrames, parse_start, replay_video, source_video
+from tools.simulate.scenario import VideoWriter
 
 
 def test_parse_start():
@@ -33,6 +36,44 @@ def test_capture_times_and_wall(tmp_path):
     src = VideoFrames(str(vid), 10.0, DEFAULT_START_WALL, make_site())  # --fps overrides the container
     ts = [src.read()[0].t for _ in range(10)]
     assert ts == pytest.approx([i / 10 for i in range(10)])
+
+
+def _recording(path, gaps: list[tuple[int, int]], n: int = 12):
+    """An H.264 recording at 25 fps (640x480) whose timestamps step over frames left out (see VideoWriter)."""
+    w = VideoWriter(path, 640, 480, 25.0, gaps=gaps)
+    for i in range(n):
+        w.write(np.full((480, 640), 40 + 10 * i, np.uint8))
+    w.close()
+
+
+def _times(src) -> list[float]:
+    out = []
+    while (got := src.read()) is not None:
+        out.append(round(got[0].t, 6))
+    return out
+
+
+def test_a_recording_that_dropped_frames_is_timed_by_its_timestamps(tmp_path):
+    """20 frames dropped before frame 4 and 15 before frame 9 (a stream that stalled): the capture times step
+    over them, 1.4 s in all (a frame counter would close the gaps up: speeds across them would read many times
+    too high, and the clock fall behind); a given --fps times every frame by the counter."""
+    _recording(tmp_path / "v.mp4", [(4, 20), (9, 15)])
+    slots = [0, 1, 2, 3, 24, 25, 26, 27, 28, 44, 45, 46]
+    assert _times(VideoFrames(str(tmp_path / "v.mp4"), None, DEFAULT_START_WALL, make_site())) == \
+        pytest.approx([k / 25 for k in slots])
+    assert _times(VideoFrames(str(tmp_path / "v.mp4"), 25.0, DEFAULT_START_WALL, make_site())) == \
+        pytest.approx([k / 25 for k in range(12)])
+
+
+def test_a_clock_that_jumps_is_not_followed(tmp_path):
+    """A timestamp 10 s after the one before (a broken clock: a camera that dropped frames steps a few hundred
+    ms) times its frame one interval on, and the frames after it keep their steps from there."""
+    _recording(tmp_path / "v.mp4", [(5, 250)])
+    ts = _times(VideoFrames(str(tmp_path / "v.mp4"), None, DEFAULT_START_WALL, make_site()))
+    assert ts[:5] == pytest.approx([k / 25 for k in range(5)])
+    step = 1 / 25  # the container's nominal rate (its average over the jump would be lower)
+    assert 0 < ts[5] - ts[4] <= step + 1e-6 < MAX_CLOCK_STEP_S
+    assert all(b - a == pytest.approx(1 / 25) for a, b in zip(ts[5:], ts[6:]))
 
 
 def test_fps_override_and_start_shift_periods(tmp_path):

@@ -102,6 +102,13 @@ def test_defects_are_recorded_in_frames_csv(tmp_path: Path) -> None:
     assert 0 < np.abs(t[::2] - nominal).max()  # jitter and drops move the true times off the nominal grid
     cap = cv2.VideoCapture(str(res.video))
     assert int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) == res.meta["frame_count"]
+    # the video's timestamps step over the dropped frames as a camera's recording does: each frame's is its
+    # capture time but for the jitter (0.3 of the 1/15 s interval at most) and a repeat's 1/30 s
+    pts = []
+    while cap.read()[0]:
+        pts.append(cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0)
+    late = np.array(pts) - t - np.array(rep) / 30.0
+    assert len(pts) == len(rows) and np.abs(late).max() <= 0.3 / 15 + 1e-3, late
 
 
 def test_demo_site_is_the_demo_scene() -> None:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import csv
 import json
-import math
 import time
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -18,6 +17,7 @@ import numpy as np
 from appliance.config import ConfigError, SiteConfig, load_site
 from appliance.measures import TrafficMeasures
 from appliance.types import Frame, LaneAggregate, LoopEvent, VehicleRecord
+from drivers.sources import FileClock
 
 DEFAULT_START_WALL = 1767225600.0  # 2026-01-01T00:00:00Z, the simulator's epoch
 
@@ -56,7 +56,7 @@ def is_image_sequence(video: str) -> bool:
 
 
 class VideoFrames:
-    """Frames of a video file or image sequence with capture times (POS_MSEC when sane)."""
+    """Frames of a video file or image sequence with capture times (see FileClock)."""
 
     def __init__(self, video: str, fps: float | None, start_wall: float, site: SiteConfig | None = None):
         self.video = str(video)
@@ -66,7 +66,6 @@ class VideoFrames:
         if not self.cap.isOpened():
             raise ReplayError(f"{self.video}: cannot be opened as a video or image sequence")
         self.sequence = is_image_sequence(self.video)
-        self.use_msec = fps is None and not self.sequence  # a given --fps overrides the container's clock
         native = self.cap.get(cv2.CAP_PROP_FPS)
         if fps is not None:
             self.fps = float(fps)
@@ -79,7 +78,8 @@ class VideoFrames:
         self.expected = int(self.cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
         self.start_wall = start_wall
         self.seq = 0
-        self.last_t = -math.inf
+        # a given --fps overrides the container's clock
+        self.clock = FileClock(self.fps, use_container=fps is None and not self.sequence)
         self.site = site
 
     def read(self) -> tuple[Frame, np.ndarray] | None:
@@ -93,14 +93,7 @@ class VideoFrames:
                     f"{self.video}: frames are {w}x{h} but the config (source.width x source.height) is "
                     f"{self.site.source.width}x{self.site.source.height}"
                 )
-        t = self.seq / self.fps
-        if self.use_msec:
-            ms = self.cap.get(cv2.CAP_PROP_POS_MSEC)
-            # sane: finite, increasing, and within a second of the nominal frame clock
-            if ms is not None and math.isfinite(ms) and ms / 1000.0 > self.last_t and abs(ms / 1000.0 - t) < 1.0:
-                t = ms / 1000.0
-        t = max(t, self.last_t + 1e-6)
-        self.last_t = t
+        t = self.clock.next(self.cap)
         grey = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img
         frame = Frame(seq=self.seq, t=t, wall=self.start_wall + t, image=np.ascontiguousarray(grey))
         self.seq += 1

@@ -34,9 +34,12 @@ class ScenarioOutput:
 
 
 class VideoWriter:
-    """Grey frames to an mp4 file: H.264 through an ffmpeg pipe, or OpenCV's mp4v when ffmpeg is missing."""
+    """Grey frames to an mp4 file: H.264 through an ffmpeg pipe, or OpenCV's mp4v when ffmpeg is missing.
+    gaps: (frame, intervals) where that many frame intervals were left out before that frame (dropped
+    frames): its timestamp and the later ones' step over them, as a camera's recording does (ffmpeg only)."""
 
-    def __init__(self, path: Path, width: int, height: int, fps: float, crf: int = 23):
+    def __init__(self, path: Path, width: int, height: int, fps: float, crf: int = 23,
+                 gaps: list[tuple[int, int]] | None = None):
         self.path, self.n = path, 0
         self.proc = None
         self.cv = None
@@ -44,8 +47,9 @@ class VideoWriter:
         self.encoder = f"libx264 crf {crf} (ffmpeg)"
         if shutil.which("ffmpeg"):
             cmd = ["ffmpeg", "-loglevel", "error", "-y", "-f", "rawvideo", "-pix_fmt", "gray", "-s", f"{width}x{height}",
-                   "-r", f"{fps:g}", "-i", "-", "-c:v", "libx264", "-preset", "ultrafast", "-tune", "zerolatency",
-                   "-crf", str(crf), "-pix_fmt", "yuv420p", "-threads", "1", str(path)]
+                   "-r", f"{fps:g}", "-i", "-", *_gap_filter(gaps or [], fps), "-c:v", "libx264",
+                   "-preset", "ultrafast", "-tune", "zerolatency", "-crf", str(crf), "-pix_fmt", "yuv420p",
+                   "-threads", "1", str(path)]
             self.proc = subprocess.Popen(cmd, stdin=subprocess.PIPE)
         else:
             self.encoder = "mp4v (OpenCV; ffmpeg not found: install it for H.264 like a camera's)"
@@ -67,6 +71,29 @@ class VideoWriter:
                 raise RuntimeError(f"ffmpeg failed writing {self.path}")
         else:
             self.cv.release()
+
+
+def _gap_filter(gaps: list[tuple[int, int]], fps: float) -> list[str]:
+    """ffmpeg options giving frame N the timestamp of frame N plus the intervals left out before it."""
+    if not gaps:
+        return []
+    skipped = "+".join(f"{k}*gte(N\\,{n})" for n, k in gaps)  # (a comma ends a filter)
+    return ["-vf", f"setpts=(N+{skipped})/({fps!r}*TB)", "-fps_mode", "passthrough"]
+
+
+def dropped_gaps(dropped: np.ndarray, repeat_frames: int) -> list[tuple[int, int]]:
+    """(video frame, intervals left out before it) for each run of dropped captures (each capture is written
+    repeat_frames times)."""
+    gaps, pending, n = [], 0, 0
+    for d in dropped:
+        if d:
+            pending += repeat_frames
+            continue
+        if pending:
+            gaps.append((n, pending))
+            pending = 0
+        n += repeat_frames
+    return gaps
 
 
 def capture_times(seconds: float, content_fps: float, jitter_ms: float, rng: np.random.Generator) -> np.ndarray:
@@ -108,7 +135,7 @@ def render_scenario(preset: str, seed: int, seconds: float, out_dir: Path, *, wi
     site_path.write_text(site_toml(site))
 
     video_path = out_dir / "video.mp4"
-    writer = VideoWriter(video_path, width, height, fps, p.video_crf)
+    writer = VideoWriter(video_path, width, height, fps, p.video_crf, dropped_gaps(dropped, p.repeat_frames))
     frames_rows = []
     bar = None
     if progress:
