@@ -436,6 +436,29 @@ def test_a_vehicle_finalised_inside_the_region_drives_on_to_its_end():
     assert time == pytest.approx(3.0, abs=0.01)
 
 
+def test_a_new_vehicles_earlier_points_are_in_the_lane_its_report_ends_in():
+    """Two approaching lanes (x -3.5..0 and 0..3.5; regions 80 -> 20 m, count lines at 50 m). A vehicle's
+    first report carries its points back to its region's entry (80 m at 0 s, 20 m/s); far away its place
+    across the road read x = -0.8 (lane 1's side), near it reads 1.5 (lane 2) from 55 m on. All of its 60 m
+    and 3 s are lane 2's, and it counts in lane 2 once (before: 24 m and 1.2 s went to lane 1)."""
+    lanes = [{"id": i, "direction": "approaching", "polygon_m": [[x0, 0], [x0 + 3.5, 0], [x0 + 3.5, 100], [x0, 100]],
+              "region_y_m": [20.0, 80.0], "count_y_m": 50.0} for i, x0 in ((1, -3.5), (2, 0.0))]
+    tm = TrafficMeasures(make_site(loops=[], lanes=lanes))
+    tm.step(0.0, EPOCH, [])
+    traj = [(0.0, -0.8, 80.0)] + [(t, -0.8 if 80.0 - 20 * t > 55.0 else 1.5, 80.0 - 20 * t)
+                                  for t in np.arange(0.5, 1.99, 0.04)]
+    got = []
+    for i in range(50, 76):
+        t = i / 25
+        v = VehicleState(4, t, 1.5, 80.0 - 20 * t, 84.5 - 20 * t, 0.0, -20.0, 4.5, 8,
+                         trajectory=traj if i == 50 else None)
+        got += tm.step(t, EPOCH + t, [v]).crossings
+    assert [c.lane for c in got] == [2]
+    (d1, d2), (t1, t2) = tm.edie.peek(EPOCH)
+    assert d1 == pytest.approx(0.0) and t1 == pytest.approx(0.0)
+    assert d2 == pytest.approx(60.0, abs=0.1) and t2 == pytest.approx(3.0, abs=0.01)
+
+
 @pytest.mark.parametrize("entered, counted", [(True, True), (False, True), (True, False)])
 def test_a_counted_vehicle_first_seen_inside_its_region_is_extended_back_to_its_entry(entered, counted):
     """A small group (not extended back by the pipeline) first seen at y = 65.6 m, inside lane 1's region
