@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import math
+import re
 import shutil
 import subprocess
 from dataclasses import dataclass
@@ -78,7 +80,17 @@ def _gap_filter(gaps: list[tuple[int, int]], fps: float) -> list[str]:
     if not gaps:
         return []
     skipped = "+".join(f"{k}*gte(N\\,{n})" for n, k in gaps)  # (a comma ends a filter)
-    return ["-vf", f"setpts=(N+{skipped})/({fps!r}*TB)", "-fps_mode", "passthrough"]
+    return ["-vf", f"setpts=(N+{skipped})/({fps!r}*TB)", *_passthrough()]
+
+
+@functools.cache
+def _passthrough() -> list[str]:
+    """ffmpeg's option to keep each frame's timestamp (no frames added over the gaps): -fps_mode from 5.1 on,
+    -vsync before (it is gone in 9)."""
+    out = subprocess.run(["ffmpeg", "-version"], capture_output=True, text=True).stdout
+    m = re.match(r"ffmpeg version n?(\d+)\.(\d+)", out)
+    old = m is not None and (int(m[1]), int(m[2])) < (5, 1)
+    return ["-vsync", "passthrough"] if old else ["-fps_mode", "passthrough"]
 
 
 def dropped_gaps(dropped: np.ndarray, repeat_frames: int) -> list[tuple[int, int]]:
