@@ -8,7 +8,6 @@ import pytest
 
 from test_measures_core import make_site
 from test_replay_badinput import write_avi
-from drivers.sources import MAX_CLOCK_STEP_S
 from tools.replay import DEFAULT_START_WALL, VideoFrames, parse_start, replay_video, source_video
 from tools.simulate.scenario import VideoWriter
 
@@ -65,14 +64,15 @@ def test_a_recording_that_dropped_frames_is_timed_by_its_timestamps(tmp_path):
         pytest.approx([k / 25 for k in range(12)])
 
 
-def test_a_clock_that_jumps_is_not_followed(tmp_path):
-    """A timestamp 10 s after the one before (a broken clock: a camera that dropped frames steps a few hundred
-    ms) times its frame one interval on, and the frames after it keep their steps from there."""
-    _recording(tmp_path / "v.mp4", [(5, 250)])
+@pytest.mark.parametrize("left_out, followed", [(44, True), (54, False), (250, False)])
+def test_a_clock_that_jumps_is_not_followed(tmp_path, left_out, followed):
+    """A timestamp 1.8 s after the one before is followed (a stream that stalled that long); 2.2 s or 10 s
+    (past MAX_CLOCK_STEP_S: a broken clock) times its frame one interval on, and the frames after it keep
+    their steps from there."""
+    _recording(tmp_path / "v.mp4", [(5, left_out)])
     ts = _times(VideoFrames(str(tmp_path / "v.mp4"), None, DEFAULT_START_WALL, make_site()))
     assert ts[:5] == pytest.approx([k / 25 for k in range(5)])
-    step = 1 / 25  # the container's nominal rate (its average over the jump would be lower)
-    assert 0 < ts[5] - ts[4] <= step + 1e-6 < MAX_CLOCK_STEP_S
+    assert ts[5] - ts[4] == pytest.approx((left_out + 1) / 25 if followed else 1 / 25)
     assert all(b - a == pytest.approx(1 / 25) for a, b in zip(ts[5:], ts[6:]))
 
 
