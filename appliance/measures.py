@@ -391,9 +391,11 @@ class TrafficMeasures:
     def _carry_on(self, v: VehicleState, tr: _Track, offset: float) -> tuple | None:
         """A vehicle finalised at an exit zone that begins before the end of its lane's Edie region (far
         away, where vehicles are small) drives on to that end: its Edie segment over the rest, at its
-        recent speed, as the pipeline's backfill adds the stretch before a vehicle was first seen. One
-        lost on the way is not carried on: it may be found again as a new vehicle."""
-        if not v.exited:
+        recent speed, as the pipeline's backfill adds the stretch before a vehicle was first seen. So does a
+        counted one finished where it was lost (the grouper finishes only those past their detection zone,
+        where no features are found on them again): on a curve a receding lane's vehicles are often lost
+        before their exit zone. An uncounted one lost on the way may be a part of another vehicle."""
+        if not v.exited and not tr.crossed:
             return None
         lane = tr.lane_raw if tr.lane_raw is not None else tr.history.lane
         if lane is None:

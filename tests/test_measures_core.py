@@ -459,6 +459,23 @@ def test_a_new_vehicles_earlier_points_are_in_the_lane_its_report_ends_in():
     assert d2 == pytest.approx(60.0, abs=0.1) and t2 == pytest.approx(3.0, abs=0.01)
 
 
+@pytest.mark.parametrize("lost_at, dist", [(69.6, 60.0), (35.0, 15.0)])
+def test_a_counted_vehicle_lost_inside_the_region_drives_on_to_its_end(lost_at, dist):
+    """A receding vehicle (count line 40 m, region 20-80 m, 20 m/s) finished where it was lost, not at an exit
+    zone (the grouper finishes only those past their detection zone: no features are found on them again).
+    Lost at 69.6 m after its count it drives on to the region's end: d(A) = 60 m, t(A) = 3 s. Lost at 35 m,
+    before its count line, it is not carried on (it may be a part of another vehicle): 15 m, 0.75 s."""
+    tm = TrafficMeasures(make_site(loops=[]))
+    n = int(round(lost_at / 20.0 * 25))
+    for i in range(n + 1):
+        t = i / 25
+        y = 20.0 * t
+        tm.step(t, EPOCH + t, [VehicleState(7, t, 2.5, y, y - 4.5, 0, 20, 4.5, 8, finished=i == n)])
+    d, time = tm.edie.peek(EPOCH)[:, 1]
+    assert d == pytest.approx(dist, abs=0.5)
+    assert time == pytest.approx(dist / 20.0, abs=0.03)
+
+
 @pytest.mark.parametrize("entered, counted", [(True, True), (False, True), (True, False)])
 def test_a_counted_vehicle_first_seen_inside_its_region_is_extended_back_to_its_entry(entered, counted):
     """A small group (not extended back by the pipeline) first seen at y = 65.6 m, inside lane 1's region
