@@ -191,20 +191,16 @@ class TrafficMeasures:
             known.add(v.id)
         flat = [s for _, ss in todo for s in ss]
         raws = self.lanes.lanes_at(np.array([s.x for s in flat]), np.array([s.y_front for s in flat]))
-        # a new vehicle's points before its report (held, and the stretch back to its region's entry) are in
-        # the lane its report ends in: far away, where it was first seen, its place across the road is least
-        # sure (a lane is a few pixels wide there, and on a curve the lanes shift sideways)
-        k = 0
-        for _, ss in todo:
-            k += len(ss)
-            if len(ss) > 1 and raws[k - 1]:
-                raws[k - len(ss):k - 1] = raws[k - 1]
         segs: list[tuple | None] = []
         k = 0
         for v, ss in todo:
             seen.add(v.id)
+            # a new vehicle's points before its report (held, and the stretch back to its region's entry) are in
+            # the lane its report ends in: far away, where it was first seen, its place across the road is least
+            # sure (a lane is a few pixels wide there, and on a curve the lanes shift sideways)
+            end = int(raws[k + len(ss) - 1]) if len(ss) > 1 else 0
             for s in ss:
-                raw = int(raws[k]) or None
+                raw = end or int(raws[k]) or None
                 k += 1
                 seg = self._advance(s, raw, offset, out)
                 if seg is not None:
