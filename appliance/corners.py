@@ -13,6 +13,18 @@ from appliance.config import TrackingParams
 
 MOTION_LEVEL = 10  # grey levels of frame difference that count as motion
 MOTION_GROW_PX = 7  # motion mask dilation, so corners at the edge of moving texture are kept
+# The corner threshold is for daylight. In a frame dimmer on average than DAY_GREY (day scenes: 90-140, dusk:
+# 50-60) a texture's contrast is dimmed with the light, and the structure tensor with the contrast squared, so
+# the threshold falls with the mean grey squared (at dusk a far lane's cars would otherwise hold 1-3 features),
+# but no lower than MIN_DIM_SCALE of it: the sensor's noise does not dim. (At night vehicles are found by their
+# lights, which are not dim: the pipeline keeps the threshold there.)
+DAY_GREY = 80.0
+MIN_DIM_SCALE = 0.5
+
+
+def dim_scale(mean_grey: float) -> float:
+    """The share of the configured corner threshold that applies in a frame of this mean grey level."""
+    return min(1.0, max(MIN_DIM_SCALE, (mean_grey / DAY_GREY) ** 2))
 
 
 @njit(cache=True)
@@ -55,6 +67,7 @@ class CornerDetector:
         self.kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * MOTION_GROW_PX + 1, 2 * MOTION_GROW_PX + 1))
         self.out = np.zeros(params.corners_per_frame, np.int64)
         self.last_score: np.ndarray | None = None
+        self.scale = 1.0  # the share of the corner threshold that applies (see dim_scale)
 
     def motion_mask(self, cur_roi: np.ndarray, prev_roi: np.ndarray) -> np.ndarray:
         diff = cv2.absdiff(cur_roi, prev_roi)
@@ -86,7 +99,7 @@ class CornerDetector:
         score = cv2.cornerMinEigenVal(cur, self.BLOCK, 3)
         self.last_score = score
         peak = cv2.dilate(score, None)  # 3x3 non-maximum suppression
-        good = (score >= self.p.corner_min_eig) & (score >= peak) & (mask > 0)
+        good = (score >= self.p.corner_min_eig * self.scale) & (score >= peak) & (mask > 0)
         ys, xs = np.nonzero(good)
         # keep away from the image border so the template fits
         b = self.p.template_px // 2 + 1

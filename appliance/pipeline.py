@@ -14,7 +14,7 @@ import numpy as np
 
 from appliance.background import Background
 from appliance.config import SiteConfig
-from appliance.corners import CornerDetector
+from appliance.corners import CornerDetector, dim_scale
 from appliance.edie import back_to_entry
 from appliance.grouping import RECHECK_S, SETTLED_AGE, STILL_M, STILL_S, Grouper
 from appliance.stabilise import Stabiliser
@@ -166,6 +166,7 @@ class VisionPipeline:
         grid = img[::REPEAT_GRID, ::REPEAT_GRID]
         st["mean_grey"] = float(grid.mean())
         self.grouper.lights_only = st["mean_grey"] < NIGHT_GREY
+        self.detector.scale = 1.0 if self.grouper.lights_only else dim_scale(st["mean_grey"])
         if self.prev_grid is not None:
             _, peak, _, _ = cv2.minMaxLoc(cv2.absdiff(grid, self.prev_grid))
             repeated = frame.repeated or peak <= REPEAT_MAX_DIFF
