@@ -100,8 +100,8 @@ class TrackingParams:
     max_features: int = 512
     template_px: int = 9
     search_radius_px: int = 6
-    corner_min_eig: float = 0.002  # minimum eigenvalue of the normalised structure tensor, in daylight (see
-    # appliance.corners.dim_scale)
+    # minimum eigenvalue of the normalised structure tensor, in daylight (see appliance.corners.dim_scale)
+    corner_min_eig: float = 0.002
     corner_spacing_px: int = 6
     corners_per_frame: int = 48
     ncc_min: float = 0.7
