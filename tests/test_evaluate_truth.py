@@ -3,6 +3,7 @@ pipeline on a rendered scene through `roadwatch replay` and `roadwatch evaluate`
 
 from __future__ import annotations
 
+import csv
 import subprocess
 import sys
 
@@ -115,6 +116,47 @@ def test_crossings_are_matched_with_the_truths_and_the_odd_ones_listed(scene, tm
                         str(out), "--crossings"], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr[-2000:]
     assert "Count-line crossings vs the truth's" in r.stdout and "extra  lane" not in r.stdout
+
+
+def test_a_late_crossing_matches_within_a_wider_window(scene, tmp_path):
+    """A crossing 2 s late (a crawling vehicle's near end a few metres behind its bumper) is a missed vehicle
+    and an extra one within the default 1 s, one match within --window 3; a window of 0 s, or one given with
+    a hand count, is refused by name."""
+    site = load_site(scene.site)
+    res = tmp_path / "perfect.csv"
+    write_results(replay_truth_tracks(scene.truth_dir, site), str(res), vehicles=False)
+    rows = list(csv.DictReader(open(tmp_path / "perfect_crossings.csv")))
+
+    def room(c: dict) -> float:
+        """Seconds to the nearest other crossing of its lane, before it or 2 s after it."""
+        t = float(c["t"])
+        others = [float(o["t"]) for o in rows if o is not c and o["lane"] == c["lane"]]
+        return min([t - o for o in others if o <= t] + [(o - t - 2.0) for o in others if o > t] + [60.0])
+
+    late = max(rows, key=room)
+    assert room(late) > 3.0  # no other crossing of its lane within 3 s of it, late or not
+    late["t"] = str(float(late["t"]) + 2.0)
+    with open(tmp_path / "perfect_crossings.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+
+    def run(*extra: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "tools.cli", "evaluate", "--truth", str(scene.truth_dir),
+                               "--results", str(res), "--crossings", *extra], capture_output=True, text=True,
+                              timeout=120)
+
+    r = run()
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "within 1 s" in r.stdout and r.stdout.count("extra  lane") == 1 and r.stdout.count("missed lane") == 1
+    r = run("--window", "3")
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "within 3 s" in r.stdout and "extra  lane" not in r.stdout and "missed lane" not in r.stdout
+    r = run("--window", "0")
+    assert r.returncode == 2 and "--window" in r.stderr
+    r = subprocess.run([sys.executable, "-m", "tools.cli", "evaluate", "--counts", str(tmp_path / "c.json"),
+                        "--results", str(res), "--window", "2"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "--window is for --truth" in r.stderr
 
 
 def test_spot_speeds_at_the_count_line_are_compared_with_the_truths(scene, tmp_path):

@@ -357,7 +357,9 @@ def format_count_report(cmp: CountComparison, lists: bool = True, ref: str = "ha
 @click.option("--tolerance", type=int, default=4, show_default=True, help="frames for a hand-count match")
 @click.option("--complete-only", is_flag=True, help="ignore partial periods")
 @click.option("--crossings", "list_crossings", is_flag=True,
-              help="truth: match count-line crossings (same lane, within 1 s) and list the extra and missed ones")
+              help="truth: match count-line crossings (same lane, within --window) and list the extra and missed ones")
+@click.option("--window", type=click.FloatRange(min=0.0, min_open=True), default=1.0, show_default=True,
+              help="truth: seconds within which a crossing matches the truth's (a crawl's near end crosses late)")
 @click.option("--frames", "frame_range", default=None, metavar="FIRST:LAST",
               help="hand counts: compare only crossings in this frame range (e.g. a partial replay)")
 @click.option("--plot", "plot_png", type=click.Path(dir_okay=False), default=None, help="scatter plot PNG (Fig. 7)")
@@ -365,11 +367,14 @@ def format_count_report(cmp: CountComparison, lists: bool = True, ref: str = "ha
 @click.option("--time-space", "ts_png", type=click.Path(dir_okay=False), default=None,
               help="time-space diagram PNG (Fig. 6)")
 def evaluate(results_path: str, truth_dir: str | None, counts_path: str | None, tolerance: int, complete_only: bool,
-             list_crossings: bool, frame_range: str | None, plot_png: str | None, errors_png: str | None,
+             list_crossings: bool, window: float, frame_range: str | None, plot_png: str | None, errors_png: str | None,
              ts_png: str | None) -> None:
     """Compare replay results with simulator truth (--truth) or a hand count (--counts)."""
     if (truth_dir is None) == (counts_path is None):
         raise click.UsageError("give exactly one of --truth DIR or --counts counts.json")
+    if counts_path is not None and click.get_current_context().get_parameter_source("window") \
+            != click.core.ParameterSource.DEFAULT:
+        raise click.UsageError("--window is for --truth crossings; hand counts match within --tolerance frames")
     try:
         results = load_results(results_path)
         if truth_dir:
@@ -383,8 +388,8 @@ def evaluate(results_path: str, truth_dir: str | None, counts_path: str | None, 
                 if not results["crossings"]:
                     raise EvaluateError(
                         f"{results_path}: holds no count-line crossings (write it with roadwatch replay)")
-                xc = compare_crossings_with_truth(truth, results["crossings"])
-                click.echo("\nCount-line crossings vs the truth's (match = same lane within 1 s):")
+                xc = compare_crossings_with_truth(truth, results["crossings"], window)
+                click.echo(f"\nCount-line crossings vs the truth's (match = same lane within {window:g} s):")
                 click.echo(format_count_report(xc, lists=False, ref="truth"))
                 click.echo(format_crossing_lists(xc))
                 click.echo(f"\nSpot speeds at the count line (matched vehicles at {SPOT_MIN_KMH:.0f} km/h or more):")
