@@ -53,8 +53,8 @@ class FileClock:
         """The time (s) of the frame just read from cap."""
         first = not math.isfinite(self.last)
         t = 0.0 if first else self.last + float(np.median(self.steps))
-        ms = cap.get(cv2.CAP_PROP_POS_MSEC) if self.use_container else None
-        if ms is not None and math.isfinite(ms):
+        ms = cap.get(cv2.CAP_PROP_POS_MSEC) if self.use_container else math.nan
+        if math.isfinite(ms):
             if self.origin is None:
                 self.origin = ms / 1000.0 - t
             pts = ms / 1000.0 - self.origin
