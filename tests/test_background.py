@@ -238,7 +238,7 @@ def test_a_road_too_plain_to_show_its_texture_through_a_shadow_is_judged_by_even
 @pytest.mark.parametrize("off_rows, shadow", [(1, True), (3, False)])
 def test_on_a_plain_road_a_shadow_dims_nearly_all_of_its_box_evenly(off_rows, shadow):
     """FLAT_CORE_SHARE (85 %): where the road is too plain to show its texture, a box is a shadow only if nearly
-    all of its darkened pixels (inside its edge) are dimmed by the one factor: 1 of its 12 rows dimmed to 0.7
+    all of its darkened pixels are dimmed by the one factor: 1 of the 12 rows of a box all in shadow dimmed to 0.7
     instead of 0.5 is an edge; 3 of them (a quarter) are a plain dark vehicle's other panel."""
     road, bg, pts = _small_box(2.0)
     img = road.copy()

@@ -534,6 +534,18 @@ def test_a_trucks_box_seen_beyond_its_cab_and_over_the_next_lane_joins_it_where_
     assert _counted(seen) == (1 if joined else 2), {k: len(v) for k, v in seen.items()}
 
 
+@pytest.mark.parametrize("behind, parts", [((15.5, 18.0), 1), ((21.5, 25.0), 2)])
+def test_a_part_beyond_its_cab_joins_as_far_back_as_the_longest_vehicle_reaches(behind, parts):
+    """ELEVATED_LENGTH_M (18.75 m): an articulated truck's trailer top, 3.8 m up and 15.5 to 18 m behind the
+    front of the cab seen low, joins the cab where the image between them is one body. A part 21.5 to 25 m behind
+    is beyond any vehicle on the road: a second vehicle whatever the image test says (a dark queue of cars
+    reads as one body too)."""
+    cab = (_box(-0.2, 1.2, 44.0, 46.5, 10, 53), -15.0, 2, 0, 0.0)
+    top = (_box(-1.2, -0.6, 44.0 + behind[0], 44.0 + behind[1], 8, 54), -15.0, 1, 12, 3.8)
+    seen = _run([cab, top], frames=110, joined=True)
+    assert _counted(seen) == parts, {k: len(v) for k, v in seen.items()}
+
+
 def test_a_vehicle_seen_only_as_small_groups_is_one_where_it_is_alone():
     """A car showing two features low (its bumper) and two on its roof: far away the two pairs lie further apart
     in projection than the connection distance (the roof's is magnified), and each is too small to be
