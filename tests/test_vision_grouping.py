@@ -536,10 +536,10 @@ def test_a_trucks_box_seen_beyond_its_cab_and_over_the_next_lane_joins_it_where_
 
 @pytest.mark.parametrize("behind, parts", [((15.5, 18.0), 1), ((21.5, 25.0), 2)])
 def test_a_part_beyond_its_cab_joins_as_far_back_as_the_longest_vehicle_reaches(behind, parts):
-    """ELEVATED_LENGTH_M (18.75 m): an articulated truck's trailer top, 3.8 m up and 15.5 to 18 m behind the
-    front of the cab seen low, joins the cab where the image between them is one body. A part 21.5 to 25 m behind
-    is beyond any vehicle on the road: a second vehicle whatever the image test says (a dark queue of cars
-    reads as one body too)."""
+    """ELEVATED_LENGTH_M (18.75 m, the longest vehicle allowed in the EU: a road train): its rear trailer's top,
+    3.8 m up and 15.5 to 18 m behind the front of the cab seen low, joins the cab where the image between them is
+    one body. A part 21.5 to 25 m behind is beyond the longest vehicle: a second vehicle whatever the image test
+    says (a dark queue of cars reads as one body too)."""
     cab = (_box(-0.2, 1.2, 44.0, 46.5, 10, 53), -15.0, 2, 0, 0.0)
     top = (_box(-1.2, -0.6, 44.0 + behind[0], 44.0 + behind[1], 8, 54), -15.0, 1, 12, 3.8)
     seen = _run([cab, top], frames=110, joined=True)
@@ -577,7 +577,8 @@ def test_the_spot_speed_is_the_bumpers_not_the_lights_above_it():
     """SPOT_M (1 m): the spot speed (count lines, loops, vehicle records) is the median of the settled features
     within this of the near end along the road: the bumper's (0.3 m up, 2.2 % fast in projection under this
     camera), not also the lights' (0.55 m up, 4 % fast), which lie 1.1-1.4 m further in projection near the
-    count line and give the velocity together with the bumper (NEAR_REP_M)."""
+    count line and give the velocity together with the bumper (NEAR_REP_M). (From below this pins only a band
+    of nothing: the synthetic features carry no noise, so one bumper feature reads as well as four.)"""
     ch = SiteZones(parse_site(site_dict())).camera[2]
     bumper = (_box(-1.0, 1.0, 50.0, 50.3, 4, 41), -15.0, 2, 0, 0.3)
     lights = (_box(-1.0, 1.0, 50.15, 50.3, 4, 42), -15.0, 2, 0, 0.55)
