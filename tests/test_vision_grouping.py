@@ -188,7 +188,9 @@ def test_a_group_standing_still_before_it_moves_dates_its_trajectory_from_the_mo
 def test_reported_length_is_the_vehicle_on_the_road_not_its_roof_projected_beyond_it():
     """A car's roofline, projected onto the road, lies metres beyond the car and runs ahead of it; the
     reported length undoes that (from the roof's speed over the near end's) and is the car's length, once the
-    cabin, watched a while as a part of its own, has joined and its features have been followed a few metres."""
+    cabin, watched a while as a part of its own, has joined and its features have been followed a few metres.
+    The far end seen is the rear window's top, HIDDEN_SHARE_REAR (15 %) of the car ahead of its rear: the length
+    comes within 0.3 m of the car's (0.17 m short here; 7.5 % or 30 % would put it 0.45 m short or 0.56 m long)."""
     from appliance.grouping import NOMINAL_LENGTH_M
 
     front, length = 44.0, 3.6
@@ -203,7 +205,7 @@ def test_reported_length_is_the_vehicle_on_the_road_not_its_roof_projected_beyon
     raw = cy + ch / (ch - 1.45) * (front + 0.84 * length - cy) - front  # the features' span at the start
     assert raw > length + 1.5, raw  # so the test can tell the two apart
     lengths = np.array([st.length for st in states])
-    assert np.all(np.abs(lengths - length) < 0.8), lengths
+    assert np.all(np.abs(lengths - length) < 0.3), lengths
     # the far end moves with the vehicle: the rear is the front plus that length
     assert np.all(np.abs(np.array([st.y_rear - st.y_front for st in states]) - lengths) < 1e-6)
 
@@ -440,14 +442,14 @@ def test_a_near_end_held_at_the_image_edge_does_not_slow_the_vehicle():
 
 def test_a_vehicle_seen_only_by_its_lights_is_reported_at_a_typical_length():
     """At night an approaching vehicle is its headlights: nothing of its body behind them is seen, so its
-    length is not measured as the lights' few centimetres but reported as a typical car's."""
-    from appliance.grouping import NOMINAL_LENGTH_M
-
+    length is not measured as the lights' few centimetres but reported as a typical car's (NOMINAL_LENGTH_M:
+    between 4 and 5 m)."""
     lights = (_box(-2.5, -1.0, 44.0, 44.2, 6, 7), -15.0, 1, 0, 0.6)
     seen = _run([lights], frames=60)
     states = [st for ss in seen.values() for st in ss if not st.finished and st.y_front < 20.0]  # followed 24 m
     assert states, seen
-    assert all(st.length == NOMINAL_LENGTH_M for st in states), [round(st.length, 2) for st in states]
+    assert all(4.0 <= st.length <= 5.0 and st.length == states[0].length for st in states), \
+        [round(st.length, 2) for st in states]
 
 
 def test_a_receding_vehicles_extent_starts_at_its_near_end():
