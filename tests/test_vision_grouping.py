@@ -596,10 +596,10 @@ def test_the_spot_speed_is_the_bumpers_not_the_lights_above_it():
 
 @pytest.mark.parametrize("shadow_in_5, counted", [(2, 1), (4, 0)])
 def test_a_group_the_image_test_takes_for_a_shadow_only_now_and_then_is_a_vehicle(shadow_in_5, counted):
-    """LONE_SHADOW_SHARE (60 %): a young group is retired unreported as a lone shadow (its caster lanes away or
-    out of view) when most of the image tests over its first LONE_SHADOW_S find only a shadow on the road. A
-    dark car whose box the test takes for a shadow in 2 frames of 5 (its windows, the road showing past its
-    edge) is a vehicle; one found a shadow in 4 of 5 is a shadow."""
+    """LONE_SHADOW_SHARE (60 %): a young group is retired as a lone shadow (its caster lanes away or out of view;
+    in the pipeline before its held report goes out) once, after LONE_SHADOW_S, this share of the image tests so
+    far found only a shadow on the road. A dark car whose box the test takes for a shadow in 2 frames of 5 (its
+    windows, the road showing past its edge) is a vehicle; one found a shadow in 4 of 5 is a shadow."""
     car = (_box(-1.0, 1.0, 52.0, 56.0, 10, 71), -12.0, 2, 0, 0.0)
     seen = _run([car], frames=80, shadow_seen=lambda f: f % 5 < shadow_in_5)
     assert _counted(seen) == counted, {k: len(v) for k, v in seen.items()}
