@@ -7,9 +7,9 @@ import pytest
 from appliance.background import READY_UPDATES, UPDATE_EVERY, Background
 
 
-def _road(seed: int = 0) -> np.ndarray:
+def _road(seed: int = 0, std: float = 14.0) -> np.ndarray:
     rng = np.random.default_rng(seed)
-    road = 120 + rng.normal(0, 14, (120, 160))
+    road = 120 + rng.normal(0, std, (120, 160))
     return np.clip(road, 0, 255).astype(np.uint8)
 
 
@@ -218,8 +218,7 @@ def test_a_shadows_core_is_one_factor_within_a_tolerance(second, shadow):
 def _small_box(texture_std: float) -> tuple[np.ndarray, Background, np.ndarray]:
     """A road of this texture, its learnt background, and two points whose test box (rows and columns 47-57 and
     57-67: one 6 px cell) is too small to be judged in cells: the whole dark area is compared instead."""
-    rng = np.random.default_rng(31)
-    road = np.clip(120 + rng.normal(0, texture_std, (120, 160)), 0, 255).astype(np.uint8)
+    road = _road(31, texture_std)
     return road, _learnt(road), np.array([[60.0, 50.0], [64.0, 54.0]])
 
 
