@@ -670,14 +670,18 @@ class Grouper:
         self.fit_vid[slots] = -1
         self.late[slots] = False
 
-    def _components(self, live: np.ndarray, s: np.ndarray, age: np.ndarray) -> None:
+    def _components(self, t: float, live: np.ndarray, s: np.ndarray, age: np.ndarray) -> None:
         """Label the connected components of the pair graph (self.labels). With the camera known, no feature
         found this frame (age 0: born, or never matched since) joins two reported vehicles (see unbridge):
-        parts of one vehicle reported apart then join it as fragments, by their height."""
+        parts of one vehicle reported apart then join it as fragments, by their height. A vehicle with few
+        features left is one too (a queued car whose other features were lost: joined, its count goes), unless
+        it may still turn out to be a part of another: small, reported within RECHECK_S and matched to a host
+        by a re-check (a tall vehicle's top, which a new feature between the two then joins to its vehicle)."""
         if self.foot is None:
             components(live, self.state, self.labels)
             return
-        ids = [vid for vid, tr in self.tracks.items() if tr.reported and tr.n_now >= self.p.min_features]
+        ids = [vid for vid, tr in self.tracks.items() if tr.reported and (
+            tr.n_now >= self.p.min_features or t - tr.report_t > RECHECK_S or tr.votes[1] == 0)]
         owner = np.where(np.isin(self.fvid, ids), self.fvid, -1)
         new = live[age[live] == 0]
         kept = unbridge(new, live, owner, s, self.state) if len(new) else None
@@ -717,7 +721,7 @@ class Grouper:
         if len(live):
             pair_update(live, s, lane, motion_class(s, age), self.state, self.rng, self.y0, p.connection_lateral_m,
                         p.connection_m, p.segmentation_lateral_m, p.segmentation_m, p.segmentation_per_m, self.late)
-            self._components(live, s, age)
+            self._components(t, live, s, age)
             groups = self._assign_ids(live)
         # shadow(group slots, host id): the image test for a group lying only on the host's shadow
         shadow = None if is_shadow is None else (

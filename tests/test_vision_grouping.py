@@ -18,7 +18,8 @@ SETTLING = 0.6
 
 def _run(objects: list[tuple[np.ndarray, float, int, int]], frames: int = 90, lanes=None,
          shadow_seen=None, night: bool = False, joined: bool | None = None, shadow_at=None) -> dict[int, list]:
-    """objects: (ground points (n, 2) at t=0, speed along Y, lane, first frame seen, height above road).
+    """objects: (ground points (n, 2) at t=0, speed along Y, lane, first frame seen, height above road[, frame
+    from which they are lost]).
     shadow_seen(frame): what the image's shadow test answers in that frame (default: no image test), for any
     points or only for a caster's shadow where shadow_at(image points) holds; joined: what the image test of
     two groups being one body answers (default: no image test)."""
@@ -37,10 +38,12 @@ def _run(objects: list[tuple[np.ndarray, float, int, int]], frames: int = 90, la
     for f in range(frames):
         t = f * DT
         slot = 0
-        for pts, speed, ln, first, h in objects:
+        for pts, speed, ln, first, h, *lost in objects:
             k = ch / (ch - h)  # height magnification of the road-plane projection
             for gx, gy in pts:
-                if f >= first:
+                if lost and f >= lost[0]:
+                    alive[slot] = False
+                elif f >= first:
                     if not alive[slot]:
                         g.reset_slots(np.array([slot]))
                     # speed: m/s, or a function of time giving (distance travelled, speed)
@@ -422,6 +425,20 @@ def test_new_features_between_two_queued_vehicles_do_not_join_them(gap_m: float,
     follower = (_box(-1.0, 1.0, 41.5 + gap_m, 45.5 + gap_m, 6, 13), -5.0, 2, 0, 0.0)
     bridges = [(np.array([[0.0, y]]), -5.0, 2, 20, 0.0) for y in bridge_y]  # found when both were reported
     seen = _run([leader, follower, *bridges], frames=150)
+    assert _counted(seen) == 2, {vid: (ss[0].t, ss[0].y_front, ss[-1].n_features) for vid, ss in seen.items()}
+
+
+def test_a_queued_car_with_few_features_left_is_not_joined_to_the_one_behind_by_a_new_corner():
+    """A car reported long ago has lost most of its corners as it crawls in a queue (two left, fewer than a
+    vehicle needs to be reported); a corner found between it and the car behind lies within the connection
+    distance of both. Linking it to both would join the two for good, one count for two: it keeps to one.
+    (A group that small and that new, which a re-check has matched to a vehicle, may still be that vehicle's
+    top: a new corner may join the two, see test_roof_fragment_joins_its_truck_but_a_faster_car_stays_apart.)"""
+    kept = (_box(-1.0, 1.0, 50.0, 50.5, 2, 14), -5.0, 2, 0, 0.0)
+    lost = (_box(-1.0, 1.0, 50.5, 51.5, 4, 15), -5.0, 2, 0, 0.0, 45)  # gone 1.8 s in, 1.2 s after its report
+    follower = (_box(-1.0, 1.0, 57.5, 61.5, 6, 16), -5.0, 2, 0, 0.0)
+    bridge = (np.array([[0.0, 54.5]]), -5.0, 2, 60, 0.0)  # 3 m from either car
+    seen = _run([kept, lost, follower, bridge], frames=180)
     assert _counted(seen) == 2, {vid: (ss[0].t, ss[0].y_front, ss[-1].n_features) for vid, ss in seen.items()}
 
 
