@@ -673,10 +673,10 @@ class Grouper:
     def _components(self, t: float, live: np.ndarray, s: np.ndarray, age: np.ndarray) -> None:
         """Label the connected components of the pair graph (self.labels). With the camera known, no feature
         found this frame (age 0: born, or never matched since) joins two reported vehicles (see unbridge):
-        parts of one vehicle reported apart then join it as fragments, by their height. A vehicle with few
-        features left is one too (a queued car whose other features were lost: joined, its count goes), unless
-        it may still turn out to be a part of another: small, reported within RECHECK_S and matched to a host
-        by a re-check (a tall vehicle's top, which a new feature between the two then joins to its vehicle)."""
+        parts of one vehicle reported apart then join it as fragments, by their height. That holds for a
+        vehicle with few features left too (a queued car whose other features were lost: joined, its count
+        would go), unless it may still turn out to be a part of another: small, reported within RECHECK_S and
+        matched to a host by a re-check (a tall vehicle's top, which a new feature may then join to it)."""
         if self.foot is None:
             components(live, self.state, self.labels)
             return
