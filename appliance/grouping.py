@@ -676,7 +676,8 @@ class Grouper:
         parts of one vehicle reported apart then join it as fragments, by their height. That holds for a
         vehicle with few features left too (a queued car whose other features were lost: joined, its count
         would go), unless it may still turn out to be a part of another: small, reported within RECHECK_S and
-        matched to a host by a re-check (a tall vehicle's top, which a new feature may then join to it)."""
+        matched to a host in a re-check at least once (a tall vehicle's top, or a side part or shadow in the
+        next lane). A new feature may then join it to a vehicle of its own lane, its host or not."""
         if self.foot is None:
             components(live, self.state, self.labels)
             return

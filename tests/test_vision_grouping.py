@@ -6,17 +6,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from appliance.config import parse_site
+from appliance.config import MeasuresConfig, parse_site
 from appliance.grouping import Grouper, VehicleTrack
 from appliance.zones import SiteZones
 from tests.test_vision_pipeline import site_dict
 
 DT = 0.04
+RECEDING_BESIDE_APPROACHING = (("receding", -3.5, 0.0), ("approaching", 0.0, 3.5))  # lane 1 recedes
 COUNT_Y = 30.0
 SETTLING = 0.6
 
 
-def _run(objects: list[tuple[np.ndarray, float, int, int]], frames: int = 90, lanes=None,
+def _run(objects: list[tuple], frames: int = 90, lanes=None,
          shadow_seen=None, night: bool = False, joined: bool | None = None, shadow_at=None) -> dict[int, list]:
     """objects: (ground points (n, 2) at t=0, speed along Y, lane, first frame seen, height above road[, frame
     from which they are lost]).
@@ -73,6 +74,11 @@ def _counted(seen: dict[int, list], receding: bool = False) -> int:
         ys = [p[2] for p in ss[0].trajectory or []] + [st.y_front for st in ss]
         n += any((a < COUNT_Y <= b) if receding else (a > COUNT_Y >= b) for a, b in zip(ys, ys[1:]))
     return n
+
+
+def _firsts(seen: dict[int, list]) -> dict[int, tuple]:
+    """Per vehicle: its first report's time and front, and its last feature count (for assert messages)."""
+    return {vid: (ss[0].t, ss[0].y_front, ss[-1].n_features) for vid, ss in seen.items()}
 
 
 def _box(x0: float, x1: float, y0: float, y1: float, n: int, seed: int) -> np.ndarray:
@@ -217,10 +223,10 @@ def test_a_receding_cars_length_takes_in_the_bonnet_hidden_beyond_its_windscreen
     """A receding car shows its rear and its cabin; the furthest part seen is the windscreen's top, the bonnet
     beyond it hidden: HIDDEN_SHARE_FRONT (30 %) of the car. Once its features are fitted (the first half
     second), the reported length comes within 0.3 m of the car's 4 m (3.94 m here; 15 % or 45 % would give
-    3.24 or 5.01 m), and once the rear has moved on past where the span first put the front, the front
-    reported is the rear plus that length."""
+    3.24 or 5.01 m). The front never goes back: once the rear plus that length has passed the front the span
+    last put (from 0.64 s here), the front reported is the rear plus that length."""
     length, rear = 4.0, 12.0
-    lanes = (("receding", -3.5, 0.0), ("approaching", 0.0, 3.5))
+    lanes = RECEDING_BESIDE_APPROACHING
     body = (_box(-2.6, -0.9, rear, rear + 1.0, 10, 5), 15.0, 1, 0, 0.3)  # bumper and boot lid
     cabin = (_box(-2.5, -1.0, rear + 0.2 * length, rear + 0.7 * length, 10, 6), 15.0, 1, 0, 1.45)
     seen = _run([body, cabin], frames=60, lanes=lanes)
@@ -392,7 +398,7 @@ def test_road_texture_uncovered_behind_a_receding_vehicle_is_not_its_near_end():
     """Corners on the road just uncovered behind a receding car (0.3 m behind its rear, a new one every
     third frame) are linked to it before their speed shows. They are not its near end: once its own
     features have settled its reported speed stays 15 m/s (within 10 %) in every report."""
-    lanes = (("receding", -3.5, 0.0), ("approaching", 0.0, 3.5))
+    lanes = RECEDING_BESIDE_APPROACHING
     car = (_box(-2.6, -0.9, 10.0, 14.0, 12, 7), 15.0, 1, 0, 0.0)
     texture = [(np.array([[-1.75 + 0.1 * (f % 5), 10.0 + 15.0 * f * DT - 0.3]]), 0.0, 1, f, 0.0)
                for f in range(12, 33, 3)]
@@ -445,7 +451,7 @@ def test_new_features_between_two_queued_vehicles_do_not_join_them(gap_m: float,
     follower = (_box(-1.0, 1.0, 41.5 + gap_m, 45.5 + gap_m, 6, 13), -5.0, 2, 0, 0.0)
     bridges = [(np.array([[0.0, y]]), -5.0, 2, 20, 0.0) for y in bridge_y]  # found when both were reported
     seen = _run([leader, follower, *bridges], frames=150)
-    assert _counted(seen) == 2, {vid: (ss[0].t, ss[0].y_front, ss[-1].n_features) for vid, ss in seen.items()}
+    assert _counted(seen) == 2, _firsts(seen)
 
 
 def test_a_queued_car_with_few_features_left_is_not_joined_to_the_one_behind_by_a_new_corner():
@@ -457,9 +463,9 @@ def test_a_queued_car_with_few_features_left_is_not_joined_to_the_one_behind_by_
     kept = (_box(-1.0, 1.0, 50.0, 50.5, 2, 14), -5.0, 2, 0, 0.0)
     lost = (_box(-1.0, 1.0, 50.5, 51.5, 4, 15), -5.0, 2, 0, 0.0, 45)  # gone 1.8 s in, 1.6 s after its report
     follower = (_box(-1.0, 1.0, 57.5, 61.5, 6, 16), -5.0, 2, 0, 0.0)
-    bridge = (np.array([[0.0, 54.5]]), -5.0, 2, 60, 0.0)  # 3 m from either car
+    bridge = (np.array([[0.0, 54.5]]), -5.0, 2, 60, 0.0)  # 4.1 and 3.2 m from the two cars' nearest corners
     seen = _run([kept, lost, follower, bridge], frames=180)
-    assert _counted(seen) == 2, {vid: (ss[0].t, ss[0].y_front, ss[-1].n_features) for vid, ss in seen.items()}
+    assert _counted(seen) == 2, _firsts(seen)
 
 
 def test_a_near_end_held_at_the_image_edge_does_not_slow_the_vehicle():
@@ -494,8 +500,6 @@ def test_a_motorcycle_showing_its_rider_behind_its_wheel_is_not_given_a_cars_len
     lights alone, that shows some of its extent (FIT_MIN_EXTENT_M: 0.5 m), so it is measured, not given the
     nominal car's length: it stays in the motorcycle length class (under 2.1 m; 0.93 m here, 4.5 m if the
     extent needed were 1 m)."""
-    from appliance.config import MeasuresConfig
-
     front = 44.0
     wheel = (_box(-1.9, -1.6, front, front + 0.3, 4, 7), -15.0, 1, 0, 0.5)
     rider = (_box(-1.9, -1.6, front + 0.5, front + 0.8, 4, 8), -15.0, 1, 0, 1.3)
