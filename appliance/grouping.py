@@ -675,14 +675,16 @@ class Grouper:
         found this frame (age 0: born, or never matched since) joins two reported vehicles (see unbridge):
         parts of one vehicle reported apart then join it as fragments, by their height. That holds for a
         vehicle with few features left too (a queued car whose other features were lost: joined, its count
-        would go), unless it may still turn out to be a part of another: small, reported within RECHECK_S and
-        matched to a host in a re-check at least once (a tall vehicle's top, or a side part or shadow in the
-        next lane). A new feature may then join it to a vehicle of its own lane, its host or not."""
+        would go), unless it may still turn out to be a part of another vehicle of its lane: small, reported
+        within RECHECK_S, and matched by a re-check (at least once) to a host still there in its lane (a tall
+        vehicle's top, which a new feature between the two may then join to it; a side part or a shadow, whose
+        host is in the next lane, no new feature could join to its host)."""
         if self.foot is None:
             components(live, self.state, self.labels)
             return
         ids = [vid for vid, tr in self.tracks.items() if tr.reported and (
-            tr.n_now >= self.p.min_features or t - tr.report_t > RECHECK_S or tr.votes[1] == 0)]
+            tr.n_now >= self.p.min_features or t - tr.report_t > RECHECK_S or tr.votes[1] == 0
+            or tr.votes[0] not in self.tracks or self.tracks[tr.votes[0]].lane_index != tr.lane_index)]
         owner = np.where(np.isin(self.fvid, ids), self.fvid, -1)
         new = live[age[live] == 0]
         kept = unbridge(new, live, owner, s, self.state) if len(new) else None
