@@ -682,9 +682,7 @@ class Grouper:
         if self.foot is None:
             components(live, self.state, self.labels)
             return
-        ids = [vid for vid, tr in self.tracks.items() if tr.reported and (
-            tr.n_now >= self.p.min_features or t - tr.report_t > RECHECK_S or tr.votes[1] == 0
-            or tr.votes[0] not in self.tracks or self.tracks[tr.votes[0]].lane_index != tr.lane_index)]
+        ids = [vid for vid, tr in self.tracks.items() if tr.reported and not self._on_trial(tr, t)]
         owner = np.where(np.isin(self.fvid, ids), self.fvid, -1)
         new = live[age[live] == 0]
         kept = unbridge(new, live, owner, s, self.state) if len(new) else None
@@ -699,6 +697,12 @@ class Grouper:
         if joint.any():
             isolate(new[joint], kept[joint], live, owner, self.state)
             components(live, self.state, self.labels)
+
+    def _on_trial(self, tr: VehicleTrack, t: float) -> bool:
+        """Whether a reported group may still be a part of another vehicle of its lane (see _components)."""
+        host = self.tracks.get(tr.votes[0]) if tr.votes[1] else None
+        return (tr.n_now < self.p.min_features and t - tr.report_t <= RECHECK_S and host is not None
+                and host.lane_index == tr.lane_index)
 
     def _assign_ids(self, live: np.ndarray) -> dict[int, np.ndarray]:
         order, starts, vids, self.next_vid = assign_ids(live, self.labels, self.fvid, self.next_vid)
