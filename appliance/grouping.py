@@ -372,12 +372,12 @@ def components(live, state, labels):
 
 
 @njit(cache=True)
-def assign_ids(live, labels, fvid, next_vid):
+def assign_ids(live, labels, fvid, next_vid, reported):
     """Vehicle ids for the components (labels) over the live slots, biggest component first (ties: lower
     label first): each takes the most frequent of its features' ids that no bigger one took (the lowest of
-    equally frequent ones), or a new one if none is left. Updates fvid; returns (order: the live slots grouped
-    by component, biggest first; starts: each component's first index in order, then the end; vids: each
-    component's id; next_vid)."""
+    equally frequent ones), an id in ``reported`` (sorted) before any other, or a new one if none is left.
+    Updates fvid; returns (order: the live slots grouped by component, biggest first; starts: each
+    component's first index in order, then the end; vids: each component's id; next_vid)."""
     n = live.shape[0]
     order = np.empty(n, np.int64)
     starts = np.zeros(n + 1, np.int64)
@@ -422,7 +422,9 @@ def assign_ids(live, labels, fvid, next_vid):
                 b = a
                 while b < m and u[b] == u[a]:
                     b += 1
-                if b - a > best_n:
+                j = np.searchsorted(reported, u[a])
+                score = b - a + (n if j < reported.shape[0] and reported[j] == u[a] else 0)
+                if score > best_n:
                     taken = False
                     for q in range(r):
                         if vids[q] == u[a]:
@@ -430,7 +432,7 @@ def assign_ids(live, labels, fvid, next_vid):
                             break
                     if not taken:
                         vid = u[a]
-                        best_n = b - a
+                        best_n = score
                 a = b
         if vid < 0:
             vid = next_vid
@@ -705,7 +707,8 @@ class Grouper:
                 and host.lane_index == tr.lane_index)
 
     def _assign_ids(self, live: np.ndarray) -> dict[int, np.ndarray]:
-        order, starts, vids, self.next_vid = assign_ids(live, self.labels, self.fvid, self.next_vid)
+        rep = np.array(sorted(v for v, tr in self.tracks.items() if tr.reported), dtype=np.int64)
+        order, starts, vids, self.next_vid = assign_ids(live, self.labels, self.fvid, self.next_vid, rep)
         return {int(v): order[a:b] for v, a, b in zip(vids, starts[:-1], starts[1:])}
 
     def step(self, t: float, s: np.ndarray, px: np.ndarray, lane: np.ndarray, alive: np.ndarray, age: np.ndarray,

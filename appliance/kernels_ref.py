@@ -177,9 +177,10 @@ def components_ref(live, state) -> dict[int, int]:
     return {i: top[part[i]] for i in live}
 
 
-def assign_ids_ref(live, labels, fvid, next_vid) -> tuple[dict[int, np.ndarray], int]:
+def assign_ids_ref(live, labels, fvid, next_vid, reported) -> tuple[dict[int, np.ndarray], int]:
     """vid -> member slots, biggest component first (ties: lower label), and the next free id: each component
-    keeps its members' most frequent unclaimed id (ties: the lower), else gets a new one. Updates fvid."""
+    keeps its members' most frequent unclaimed reported id, else their most frequent unclaimed id (ties: the
+    lower), else gets a new one. Updates fvid."""
     lab = labels[live]
     order = np.argsort(lab, kind="stable")
     sl, sv = lab[order], live[order]
@@ -189,7 +190,7 @@ def assign_ids_ref(live, labels, fvid, next_vid) -> tuple[dict[int, np.ndarray],
     for members in groups:
         vids = fvid[members]
         u, c = np.unique(vids[vids >= 0], return_counts=True)
-        free = [k for k in np.lexsort((u, -c)) if int(u[k]) not in claimed]
+        free = [k for k in np.lexsort((u, -c, ~np.isin(u, reported))) if int(u[k]) not in claimed]
         if free:
             vid = int(u[free[0]])
         else:

@@ -137,7 +137,7 @@ class VisionPipeline:
         kept = unbridge(live[:1], live, owner, s, state)
         isolate(live[:1], kept, live, owner, state)
         labels, vids = np.zeros(n, np.int64), np.full(n, -1, np.int64)
-        assign_ids(live, labels, vids, 1)
+        assign_ids(live, labels, vids, 1, np.zeros(0, np.int64))
         fit_places(live, np.full(n, 3, np.int32), s, np.zeros((n, 5)), vids, 1, 10.0, 0.0, 1.5, 10, 2.25, 1.0)
         group_summary(live, s, px, np.full(n, 3, np.int32), 3.0, 1.0, 4.0, 1.0)
         group_medians(live, np.array([0, n], np.int64), s, np.zeros(n, np.int32))

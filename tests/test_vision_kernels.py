@@ -207,13 +207,29 @@ def test_assign_ids_matches_reference():
         labels[live] = rng.integers(0, max(1, n // 3), n)
         fvid = np.where(rng.random(80) < 0.3, -1, rng.integers(1, 8, 80)).astype(np.int64)
         fvid_ref = fvid.copy()
-        order, starts, vids, nxt = assign_ids(live, labels, fvid, 50)
-        expect, nxt_ref = ref.assign_ids_ref(live, labels, fvid_ref, 50)
+        reported = np.flatnonzero(rng.random(8) < 0.3).astype(np.int64)
+        order, starts, vids, nxt = assign_ids(live, labels, fvid, 50, reported)
+        expect, nxt_ref = ref.assign_ids_ref(live, labels, fvid_ref, 50, reported)
         got = {int(vids[r]): order[starts[r]:starts[r + 1]] for r in range(len(vids))}
         assert list(got) == list(expect) and nxt == nxt_ref, trial
         for vid, members in expect.items():
             np.testing.assert_array_equal(got[vid], members)
         np.testing.assert_array_equal(fvid, fvid_ref)
+
+
+def test_a_component_keeps_the_id_of_the_reported_vehicle_in_it():
+    """A queued car reported long ago, two of its corners left, links up with a small group not yet reported
+    (three corners found on it as it crawled): the component is that vehicle still, its count and its time in
+    the region going on; a group not yet reported has only a provisional id. Without reported vehicles the
+    most frequent id wins."""
+    live = np.arange(5, dtype=np.int64)
+    labels = np.zeros(5, np.int64)
+    order, starts, vids, nxt = assign_ids(live, labels, np.array([7, 7, 5, 5, 5], np.int64), 50,
+                                          np.array([3, 7], np.int64))
+    assert vids.tolist() == [7] and nxt == 50
+    order, starts, vids, nxt = assign_ids(live, labels, np.array([7, 7, 5, 5, 5], np.int64), 50,
+                                          np.zeros(0, np.int64))
+    assert vids.tolist() == [5]
 
 
 def test_fit_places_matches_reference():
