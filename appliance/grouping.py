@@ -375,8 +375,8 @@ def components(live, state, labels):
 def assign_ids(live, labels, fvid, next_vid, reported):
     """Vehicle ids for the components (labels) over the live slots, biggest component first (ties: lower
     label first): each takes the most frequent of its features' ids that no bigger one took (the lowest of
-    equally frequent ones), an id in ``reported`` (sorted) before any other, or a new one if none is left.
-    Updates fvid; returns (order: the live slots grouped by component, biggest first; starts: each
+    equally frequent ones), the ids in ``reported`` (sorted) ranking before all others, or a new one if none
+    is left. Updates fvid; returns (order: the live slots grouped by component, biggest first; starts: each
     component's first index in order, then the end; vids: each component's id; next_vid)."""
     n = live.shape[0]
     order = np.empty(n, np.int64)
@@ -707,6 +707,9 @@ class Grouper:
                 and host.lane_index == tr.lane_index)
 
     def _assign_ids(self, live: np.ndarray) -> dict[int, np.ndarray]:
+        """Each component's vehicle id. A reported vehicle's id goes before a group's not yet reported (that
+        one is provisional): a crawling car left with few corners that links up with a small group found on
+        it, or on the car behind, stays that car, its count and its time in the region going on."""
         rep = np.array(sorted(v for v, tr in self.tracks.items() if tr.reported), dtype=np.int64)
         order, starts, vids, self.next_vid = assign_ids(live, self.labels, self.fvid, self.next_vid, rep)
         return {int(v): order[a:b] for v, a, b in zip(vids, starts[:-1], starts[1:])}

@@ -198,7 +198,8 @@ def test_components_with_fragments_match_reference():
 
 def test_assign_ids_matches_reference():
     """Ids follow the features from frame to frame: random components over random earlier ids, as the
-    grouper's Python reference assigns them (biggest component first, majority id, new ids counted on)."""
+    grouper's Python reference assigns them (biggest component first, majority id with reported ids first, new ids
+    counted on)."""
     rng = np.random.default_rng(11)
     for trial in range(40):
         n = int(rng.integers(1, 60))
