@@ -220,6 +220,8 @@ class TrafficMeasures:
                 ev = lp.drop(vid, tr.prev[0])
                 if ev is not None:
                     out.loop_events.append(ev)
+            if tr.crossed:  # gone without a finish (joined to another group): its count stands, so does its record
+                out.vehicles.append(self._record(vid, tr, tr.prev[0] - tr.first_t))
         for lp in self.loops:
             ev = lp.tick(t)
             if ev is not None:
@@ -430,20 +432,23 @@ class TrafficMeasures:
             ev = lp.drop(v.id, v.t)
             if ev is not None:
                 out.loop_events.append(ev)
+        out.vehicles.append(self._record(v.id, tr, v.t - tr.first_t))
+        return carry
+
+    def _record(self, vid: int, tr: _Track, dur: float) -> VehicleRecord:
+        """The per-vehicle record of an ended vehicle seen for ``dur`` seconds."""
         length = float(np.median(tr.lengths))
         # the period's length classes take its length over its whole passage: at the count line it was still
         # being measured (fewer frames fitted)
         for c in tr.crossed:
             c.length_m = length
-        dur = v.t - tr.first_t
         speed = float(np.median(tr.spot_speeds)) * 3.6
         lane = tr.counted_lane if tr.counted_lane is not None else tr.history.lane
-        out.vehicles.append(VehicleRecord(
-            id=v.id, lane=lane if lane is not None else 0, wall_entry=tr.first_wall, wall_exit=tr.first_wall + dur,
+        return VehicleRecord(
+            id=vid, lane=lane if lane is not None else 0, wall_entry=tr.first_wall, wall_exit=tr.first_wall + dur,
             speed_kmh=speed, length_m=length, length_class=length_class(length, self.site.measures) or "",
             lane_changes=tr.history.changes, trajectory=tr.trajectory if self.keep_trajectories else None,
-        ))
-        return carry
+        )
 
     # ------------------------------------------------------------------ periods
 

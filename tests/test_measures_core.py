@@ -476,6 +476,31 @@ def test_a_counted_vehicle_lost_inside_the_region_drives_on_to_its_end(lost_at, 
     assert time == pytest.approx(dist / 20.0, abs=0.03)
 
 
+def test_a_counted_vehicle_gone_without_a_finish_still_gets_its_record():
+    """A group counted at its line that then vanishes unfinished (it joined another group: the grouper never
+    finishes it) keeps its count; its per-vehicle record comes once it is forgotten, LOST_AFTER_S later, so
+    that every counted vehicle has one. One gone before its line (perhaps a part of another vehicle) has
+    none."""
+    from appliance.measures import LOST_AFTER_S
+
+    tm = TrafficMeasures(make_site(loops=[]))
+    records, crossings = [], []
+    for i in range(int(round((4.0 + LOST_AFTER_S + 0.5) * 25))):
+        t = i / 25
+        states = []
+        if t < 4.0:  # 80 -> 40 m at 10 m/s: over the count line (50 m) at 3 s
+            states.append(VehicleState(7, t, -2.5, 80.0 - 10 * t, 84.5 - 10 * t, 0, -10, 4.5, 6))
+        if t < 2.0:  # 95 -> 75 m: gone before its count line
+            states.append(VehicleState(8, t, -2.5, 95.0 - 10 * t, 99.5 - 10 * t, 0, -10, 4.5, 6))
+        upd = tm.step(t, EPOCH + t, states)
+        records += upd.vehicles
+        crossings += upd.crossings
+    assert [c.vehicle_id for c in crossings] == [7]
+    assert [(r.id, r.lane) for r in records] == [(7, 1)]
+    assert records[0].wall_exit == pytest.approx(EPOCH + 4.0 - 1 / 25)
+    assert records[0].speed_kmh == pytest.approx(36.0)
+
+
 @pytest.mark.parametrize("entered, counted", [(True, True), (False, True), (True, False)])
 def test_a_counted_vehicle_first_seen_inside_its_region_is_extended_back_to_its_entry(entered, counted):
     """A small group (not extended back by the pipeline) first seen at y = 65.6 m, inside lane 1's region
