@@ -375,9 +375,10 @@ def components(live, state, labels):
 def assign_ids(live, labels, fvid, next_vid, reported):
     """Vehicle ids for the components (labels) over the live slots, biggest component first (ties: lower
     label first): each takes the most frequent of its features' ids that no bigger one took (the lowest of
-    equally frequent ones), the ids in ``reported`` (sorted) ranking before all others, or a new one if none
-    is left. Updates fvid; returns (order: the live slots grouped by component, biggest first; starts: each
-    component's first index in order, then the end; vids: each component's id; next_vid)."""
+    equally frequent ones), the ids in ``reported`` (sorted) ranking before all others where it holds most of
+    that id's live features, or a new one if none is left. Updates fvid; returns (order: the live slots
+    grouped by component, biggest first; starts: each component's first index in order, then the end; vids:
+    each component's id; next_vid)."""
     n = live.shape[0]
     order = np.empty(n, np.int64)
     starts = np.zeros(n + 1, np.int64)
@@ -386,6 +387,7 @@ def assign_ids(live, labels, fvid, next_vid, reported):
         return order, starts[:1], vids, next_vid
     lab = labels[live]
     srt = np.argsort(lab, kind="mergesort")
+    held = np.sort(fvid[live])  # every id's live features, for the share a component holds of them
     ng = 1
     for a in range(1, n):
         if lab[srt[a]] != lab[srt[a - 1]]:
@@ -422,8 +424,10 @@ def assign_ids(live, labels, fvid, next_vid, reported):
                 b = a
                 while b < m and u[b] == u[a]:
                     b += 1
+                # a reported id goes first (no count reaches n) where the component holds most of its features
                 j = np.searchsorted(reported, u[a])
-                score = b - a + (n if j < reported.shape[0] and reported[j] == u[a] else 0)
+                most = 2 * (b - a) > np.searchsorted(held, u[a], "right") - np.searchsorted(held, u[a], "left")
+                score = b - a + (n if most and j < reported.shape[0] and reported[j] == u[a] else 0)
                 if score > best_n:
                     taken = False
                     for q in range(r):
@@ -708,8 +712,9 @@ class Grouper:
 
     def _assign_ids(self, live: np.ndarray) -> dict[int, np.ndarray]:
         """Each component's vehicle id. A reported vehicle's id goes before a group's not yet reported (that
-        one is provisional): a crawling car left with few corners that links up with a small group found on
-        it, or on the car behind, stays that car, its count and its time in the region going on."""
+        one is provisional) in the component holding most of its features: a crawling car left with few corners
+        that links up with a small group found on it, or on the car behind, stays that car, its count and its
+        time in the region going on; a single corner of it in a bigger group does not take its id away."""
         rep = np.array(sorted(v for v, tr in self.tracks.items() if tr.reported), dtype=np.int64)
         order, starts, vids, self.next_vid = assign_ids(live, self.labels, self.fvid, self.next_vid, rep)
         return {int(v): order[a:b] for v, a, b in zip(vids, starts[:-1], starts[1:])}

@@ -179,18 +179,20 @@ def components_ref(live, state) -> dict[int, int]:
 
 def assign_ids_ref(live, labels, fvid, next_vid, reported) -> tuple[dict[int, np.ndarray], int]:
     """vid -> member slots, biggest component first (ties: lower label), and the next free id: each component
-    keeps its members' most frequent unclaimed reported id, else their most frequent unclaimed id (ties: the
-    lower), else gets a new one. Updates fvid."""
+    keeps its members' most frequent unclaimed reported id of which it holds most live features, else their
+    most frequent unclaimed id (ties: the lower), else gets a new one. Updates fvid."""
     lab = labels[live]
     order = np.argsort(lab, kind="stable")
     sl, sv = lab[order], live[order]
     groups = np.split(sv, np.flatnonzero(np.diff(sl)) + 1)
     groups.sort(key=len, reverse=True)
+    total = dict(zip(*(a.tolist() for a in np.unique(fvid[live], return_counts=True))))
     claimed: dict[int, np.ndarray] = {}
     for members in groups:
         vids = fvid[members]
         u, c = np.unique(vids[vids >= 0], return_counts=True)
-        free = [k for k in np.lexsort((u, -c, ~np.isin(u, reported))) if int(u[k]) not in claimed]
+        first = np.isin(u, reported) & (2 * c > np.array([total.get(int(v), 0) for v in u], dtype=np.int64))
+        free = [k for k in np.lexsort((u, -c, ~first)) if int(u[k]) not in claimed]
         if free:
             vid = int(u[free[0]])
         else:

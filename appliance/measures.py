@@ -220,7 +220,10 @@ class TrafficMeasures:
                 ev = lp.drop(vid, tr.prev[0])
                 if ev is not None:
                     out.loop_events.append(ev)
-            if tr.crossed:  # gone without a finish (joined to another group): its count stands, so does its record
+            # Gone without a finish: joined to another group, or lost in its detection zone and remembered to be
+            # found again (the group found again is not counted again and gets a record of its own). Its count
+            # stands, so it gets its record. (A vehicle still tracked when a replay or the service stops gets none.)
+            if tr.crossed:
                 out.vehicles.append(self._record(vid, tr, tr.prev[0] - tr.first_t))
         for lp in self.loops:
             ev = lp.tick(t)
@@ -436,7 +439,8 @@ class TrafficMeasures:
         return carry
 
     def _record(self, vid: int, tr: _Track, dur: float) -> VehicleRecord:
-        """The per-vehicle record of an ended vehicle seen for ``dur`` seconds."""
+        """The per-vehicle record of an ended vehicle seen for ``dur`` seconds; also sets its crossings' length
+        to the median over its passage."""
         length = float(np.median(tr.lengths))
         # the period's length classes take its length over its whole passage: at the count line it was still
         # being measured (fewer frames fitted)

@@ -10,7 +10,7 @@ import pytest
 
 from appliance.config import parse_site
 from appliance.edie import clip_segments
-from appliance.measures import TrafficMeasures
+from appliance.measures import LOST_AFTER_S, TrafficMeasures
 from appliance.types import VehicleState
 
 EPOCH = 1767225600.0  # 2026-01-01T00:00:00Z, a period boundary
@@ -481,8 +481,6 @@ def test_a_counted_vehicle_gone_without_a_finish_still_gets_its_record():
     finishes it) keeps its count; its per-vehicle record comes once it is forgotten, LOST_AFTER_S later, so
     that every counted vehicle has one. One gone before its line (perhaps a part of another vehicle) has
     none."""
-    from appliance.measures import LOST_AFTER_S
-
     tm = TrafficMeasures(make_site(loops=[]))
     records, crossings = [], []
     for i in range(int(round((4.0 + LOST_AFTER_S + 0.5) * 25))):

@@ -231,6 +231,13 @@ def test_a_component_keeps_the_id_of_the_reported_vehicle_in_it():
     order, starts, vids, nxt = assign_ids(live, labels, np.array([7, 7, 5, 5, 5], np.int64), 50,
                                           np.zeros(0, np.int64))
     assert vids.tolist() == [5]
+    # one corner of the car in the standing group behind it (9 of id 5), its other 3 in a group of their own:
+    # the car stays with those 3
+    live = np.arange(13, dtype=np.int64)
+    labels = np.array([0] * 10 + [1] * 3, np.int64)
+    order, starts, vids, nxt = assign_ids(live, labels, np.array([5] * 9 + [7] * 4, np.int64), 50,
+                                          np.array([7], np.int64))
+    assert vids.tolist() == [5, 7] and nxt == 50
 
 
 def test_fit_places_matches_reference():
