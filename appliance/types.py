@@ -73,7 +73,7 @@ class LoopEvent:
 
 @dataclass(slots=True)
 class VehicleRecord:
-    """Summary of one finished vehicle."""
+    """Summary of one ended vehicle: finished, or counted and then gone without a finish."""
 
     id: int
     lane: int
