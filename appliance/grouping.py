@@ -425,9 +425,11 @@ def assign_ids(live, labels, fvid, next_vid, reported):
                 while b < m and u[b] == u[a]:
                     b += 1
                 # a reported id goes first (no count reaches n) where the component holds most of its features
+                score = b - a
                 j = np.searchsorted(reported, u[a])
-                most = 2 * (b - a) > np.searchsorted(held, u[a], "right") - np.searchsorted(held, u[a], "left")
-                score = b - a + (n if most and j < reported.shape[0] and reported[j] == u[a] else 0)
+                if j < reported.shape[0] and reported[j] == u[a]:
+                    if 2 * score > np.searchsorted(held, u[a], "right") - np.searchsorted(held, u[a], "left"):
+                        score += n
                 if score > best_n:
                     taken = False
                     for q in range(r):
@@ -676,9 +678,11 @@ class Grouper:
         self.fit_vid[slots] = -1
         self.late[slots] = False
 
-    def _components(self, t: float, live: np.ndarray, s: np.ndarray, age: np.ndarray) -> None:
+    def _components(self, t: float, live: np.ndarray, s: np.ndarray, age: np.ndarray, reported: np.ndarray
+                    ) -> None:
         """Label the connected components of the pair graph (self.labels). With the camera known, no feature
-        found this frame (age 0: born, or never matched since) joins two reported vehicles (see unbridge):
+        found this frame (age 0: born, or never matched since) joins two reported vehicles (``reported``: their
+        ids, sorted; see unbridge):
         parts of one vehicle reported apart then join it as fragments, by their height. That holds for a
         vehicle with few features left too (a queued car whose other features were lost: joined, its count
         would go), unless it may still turn out to be a part of another vehicle of its lane: small, reported
@@ -688,7 +692,7 @@ class Grouper:
         if self.foot is None:
             components(live, self.state, self.labels)
             return
-        ids = [vid for vid, tr in self.tracks.items() if tr.reported and not self._on_trial(tr, t)]
+        ids = [vid for vid in reported if not self._on_trial(self.tracks[vid], t)]
         owner = np.where(np.isin(self.fvid, ids), self.fvid, -1)
         new = live[age[live] == 0]
         kept = unbridge(new, live, owner, s, self.state) if len(new) else None
@@ -710,13 +714,12 @@ class Grouper:
         return (tr.n_now < self.p.min_features and t - tr.report_t <= RECHECK_S and host is not None
                 and host.lane_index == tr.lane_index)
 
-    def _assign_ids(self, live: np.ndarray) -> dict[int, np.ndarray]:
+    def _assign_ids(self, live: np.ndarray, reported: np.ndarray) -> dict[int, np.ndarray]:
         """Each component's vehicle id. A reported vehicle's id goes before a group's not yet reported (that
         one is provisional) in the component holding most of its features: a crawling car left with few corners
         that links up with a small group found on it, or on the car behind, stays that car, its count and its
         time in the region going on; a single corner of it in a bigger group does not take its id away."""
-        rep = np.array(sorted(v for v, tr in self.tracks.items() if tr.reported), dtype=np.int64)
-        order, starts, vids, self.next_vid = assign_ids(live, self.labels, self.fvid, self.next_vid, rep)
+        order, starts, vids, self.next_vid = assign_ids(live, self.labels, self.fvid, self.next_vid, reported)
         return {int(v): order[a:b] for v, a, b in zip(vids, starts[:-1], starts[1:])}
 
     def step(self, t: float, s: np.ndarray, px: np.ndarray, lane: np.ndarray, alive: np.ndarray, age: np.ndarray,
@@ -739,8 +742,9 @@ class Grouper:
         if len(live):
             pair_update(live, s, lane, motion_class(s, age), self.state, self.rng, self.y0, p.connection_lateral_m,
                         p.connection_m, p.segmentation_lateral_m, p.segmentation_m, p.segmentation_per_m, self.late)
-            self._components(t, live, s, age)
-            groups = self._assign_ids(live)
+            reported = np.array(sorted(vid for vid, tr in self.tracks.items() if tr.reported), dtype=np.int64)
+            self._components(t, live, s, age, reported)
+            groups = self._assign_ids(live, reported)
         # shadow(group slots, host id): the image test for a group lying only on the host's shadow
         shadow = None if is_shadow is None else (
             lambda a, host: host in groups and is_shadow(px[a], px[groups[host]]))
