@@ -16,6 +16,7 @@ from appliance.types import ChannelState, LoopEvent
 # 2 m at 36 km/h, a gap nobody keeps. The call is held through such a dropout, as a detector card's
 # dropout filter holds it, so that a controller counting call edges does not count the fragment either.
 BRIDGE_S = 0.2
+STANDING = -1  # the id a standing call seen in the image (appliance.presence) is held under
 
 
 def length_class(length_m: float | None, measures: MeasuresConfig) -> str | None:
@@ -85,6 +86,7 @@ class VirtualLoop:
         # the actuation in progress: vehicles overlapping on the loop give one actuation, as a real
         # loop gives (a fragment of a vehicle does not add a count)
         self.act: dict | None = None
+        self.last_off: float | None = None  # capture time the last actuation ended
 
     def update(
         self, vid: int, in_lane: bool, prev: tuple | None, cur: tuple, offset: float, was_in_lane: bool = True
@@ -126,6 +128,25 @@ class VirtualLoop:
             t_off = t0
         ev = self._close(vid, t_off)
         return out + ([ev] if ev is not None else [])
+
+    def hold(self, t: float, offset: float, standing: tuple[float, float] | None) -> LoopEvent | None:
+        """A vehicle seen in the image standing on the loop holds it on, tracked or not (a queued vehicle's
+        features are often lost). standing: the capture times it came onto the loop and stood still there
+        (None: no vehicle stands on it now). The call goes on when it stood, or when the loop went free if it
+        came before that: then it is the vehicle the loop already counted. Else it is counted."""
+        if standing is None:
+            return self._close(STANDING, t) if STANDING in self.active else None
+        if STANDING in self.active:
+            return None
+        came, stood = standing
+        last_off = self.act["t_off"] if self.act is not None else self.last_off
+        seen = last_off is not None and last_off >= came
+        t_on = min(stood, last_off) if seen else stood
+        ev = self.tick(t_on)
+        self.active[STANDING] = _Presence(t_on, t_on + offset)
+        if self.act is None:
+            self._start(STANDING, t_on, offset, counted=not seen)
+        return ev
 
     def drop(self, vid: int, t: float) -> LoopEvent | None:
         """The vehicle is gone (finished or lost) at t: its presence ends there."""
@@ -173,6 +194,7 @@ class VirtualLoop:
     def _emit(self) -> LoopEvent | None:
         """The actuation in progress is over: its on-interval is kept; its event unless it counted nothing."""
         act, self.act = self.act, None
+        self.last_off = act["t_off"]
         offset = act["wall_on"] - act["t_on"]
         self.intervals.append((act["wall_on"], act["t_off"] + offset))
         if not act["counted"]:

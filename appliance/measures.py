@@ -166,7 +166,10 @@ class TrafficMeasures:
 
     # ------------------------------------------------------------------ per step
 
-    def step(self, t: float, wall: float, vehicles: list[VehicleState]) -> MeasureUpdate:
+    def step(self, t: float, wall: float, vehicles: list[VehicleState],
+             standing: dict[str, tuple[float, float]] | None = None) -> MeasureUpdate:
+        """standing: the loops the image shows a vehicle standing on, with the capture times it came onto the
+        loop and stood still there (see appliance.presence)."""
         out = MeasureUpdate()
         offset = wall - t
         if self.clock.current is None:
@@ -225,10 +228,11 @@ class TrafficMeasures:
             # stands, so it gets its record. (A vehicle still tracked when a replay or the service stops gets none.)
             if tr.crossed:
                 out.vehicles.append(self._record(vid, tr, tr.prev[0] - tr.first_t))
+        standing = standing or {}
         for lp in self.loops:
-            ev = lp.tick(t)
-            if ev is not None:
-                out.loop_events.append(ev)
+            for ev in (lp.hold(t, offset, standing.get(lp.cfg.id)), lp.tick(t)):
+                if ev is not None:
+                    out.loop_events.append(ev)
         for p in self.clock.advance(wall):
             out.periods.extend(self._complete(p, partial=p in self.partial_periods))
         return out

@@ -17,6 +17,7 @@ from appliance.config import SiteConfig
 from appliance.corners import CornerDetector, dim_scale
 from appliance.edie import back_to_entry
 from appliance.grouping import RECHECK_S, SETTLED_AGE, STILL_M, STILL_S, Grouper
+from appliance.presence import LoopPresence
 from appliance.stabilise import Stabiliser
 from appliance.tracker import FeatureTracker
 from appliance.types import Frame, VehicleState
@@ -88,6 +89,7 @@ class VisionPipeline:
         self.tracker = FeatureTracker(p, H.H, H.Hinv)
         self.grouper = Grouper(p, self.zones)
         self.background = Background()
+        self.presence = LoopPresence(site, self.zones)
         self.prev: np.ndarray | None = None
         self.prev_grid: np.ndarray | None = None
         self.prev_t: float | None = None
@@ -100,7 +102,7 @@ class VisionPipeline:
             "frames": 0, "features": 0, "vehicles": 0, "finished": 0, "shake_px": (0.0, 0.0),
             "fiducials_ok": 0, "fiducials_total": 0, "repeated_frames": 0, "mean_grey": 0.0,
         }
-        self.timings: dict[str, float] = {"stabilise": 0.0, "track": 0.0, "detect": 0.0, "group": 0.0}
+        self.timings: dict[str, float] = {"stabilise": 0.0, "track": 0.0, "detect": 0.0, "group": 0.0, "presence": 0.0}
         lanes_px = [np.round(lz.polygon_px).astype(np.int32) for lz in self.zones.lanes]
         self._lanes_px = lanes_px
 
@@ -201,10 +203,15 @@ class VisionPipeline:
             tr.kill(retire)
         states = self._hold_new(states)
         c4 = time.perf_counter()
+        bg = self.background
+        self.presence.step(frame.t, img, bg.bg if bg.ready else None, self.offset, tr.s[tr.live()],
+                           night=self.grouper.lights_only)
+        c5 = time.perf_counter()
         tm["stabilise"] += c1 - c0
         tm["track"] += c2 - c1
         tm["detect"] += c3 - c2
         tm["group"] += c4 - c3
+        tm["presence"] += c5 - c4
 
         self.prev = img
         self.last_states = states
@@ -215,6 +222,11 @@ class VisionPipeline:
         st["fiducials_ok"] = self.stabiliser.n_ok
         st["fiducials_total"] = self.stabiliser.n_total
         return states
+
+    @property
+    def standing_loops(self) -> dict[str, tuple[float, float]]:
+        """Loops the image shows a vehicle standing on, with the times it came and stood (appliance.presence)."""
+        return self.presence.standing
 
     def _is_shadow(self, img: np.ndarray, pts: np.ndarray, caster: np.ndarray | None) -> bool:
         """The grouper's image test: are pts only a shadow on the road (that reaches the caster's points)? With

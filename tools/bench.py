@@ -23,7 +23,7 @@ from appliance.types import Frame
 
 SIZES = {"640x480": (640, 480), "1280x720": (1280, 720)}
 PRESETS = ("free-flow", "dense")
-STAGES = ("stabilise", "detect", "track", "group")
+STAGES = ("stabilise", "detect", "track", "group", "presence")
 
 
 def scene_dir(preset: str, size: str, seconds: float, seed: int) -> Path:

@@ -1,0 +1,174 @@
+"""Standing vehicles on loops, seen in the image: a loop's patch that differs from the empty road and has
+not changed for a while holds the loop's call when the tracker has lost a queued vehicle standing on it."""
+
+from __future__ import annotations
+
+from collections import deque
+
+import cv2
+import numpy as np
+
+DIFF_GREY = 24  # grey levels (after a 3x3 mean) between a vehicle's pixel and the road under it
+OCCUPIED_SHARE = 0.35  # of the patch's pixels: something is on the loop ...
+EMPTY_SHARE = 0.12  # ... the loop shows the road again
+STILL_LAG_S = 0.5  # the patch now against the patch this long ago ...
+STILL_SHARE = 0.04  # ... changed in at most this share of its pixels: nothing on it moves
+STAND_S = 1.0  # occupied and still this long: a vehicle stands on the loop
+MOVE_OFF_S = 2.0  # a standing vehicle that moves off holds the call this long at most (its rear leaves the loop)
+ARRIVE_S = 30.0  # a standing call needs features moving over the loop's stretch of lane this recently
+ARRIVE_M = 15.0  # ... within this distance of the loop
+ARRIVE_MPS = 1.0
+# The empty road under a loop is learnt (an approximate median) only while no feature is near: the
+# background's median learns a busy lane's traffic, and a standing queue
+CLEAR_BEHIND_M = 3.0  # ... features between this far past the loop (towards the camera) ...
+CLEAR_BEYOND_M = 8.0  # ... and this far beyond it (raised parts of vehicles near the loop project there)
+CLEAR_SIDE_M = 1.0  # ... and this far to the sides of its lane (tall neighbours hide it too)
+UPDATE_STEP = 2.0  # grey levels per frame
+RELEARN_STEP = 0.02
+MAX_STAND_S = 240.0  # a standing call or a still patch this long is a change to the road: learnt
+SHIFT_KERNEL = np.ones((3, 3), np.uint8)
+MARGIN_PX = 1  # the patch's mask is the loop's polygon shrunk by this much (lane markings at its sides)
+
+
+class LoopWatch:
+    """One loop's patch of the image against the empty road under it, learnt while no feature is near."""
+
+    def __init__(self, loop_id: str, x_range: tuple[float, float], y_range: tuple[float, float],
+                 poly_px: np.ndarray, shape: tuple[int, int]) -> None:
+        self.id = loop_id
+        self.x_range, self.y_range = x_range, y_range
+        h, w = shape
+        x0, y0 = np.floor(poly_px.min(axis=0)).astype(int) - 1
+        x1, y1 = np.ceil(poly_px.max(axis=0)).astype(int) + 2
+        self.box = (max(x0, 0), max(y0, 0), min(x1, w), min(y1, h))
+        bx0, by0, bx1, by1 = self.box
+        mask = np.zeros((max(by1 - by0, 1), max(bx1 - bx0, 1)), np.uint8)
+        cv2.fillPoly(mask, [np.round(poly_px - (bx0, by0)).astype(np.int32)], 1)
+        if MARGIN_PX and mask.sum() > 40:
+            mask = cv2.erode(mask, np.ones((2 * MARGIN_PX + 1,) * 2, np.uint8))
+        self.mask = mask.astype(bool)
+        self.n = max(int(self.mask.sum()), 1)
+        self.past: deque[tuple[float, np.ndarray]] = deque()
+        self.ref: np.ndarray | None = None
+        self.ref_mean = 1.0  # the frame's mean grey when the road was last learnt
+        self.share = 0.0
+        self.changed = 1.0
+        self.occupied_since: float | None = None
+        self.still_since: float | None = None
+        self.moving_since: float | None = None
+        self.standing: tuple[float, float] | None = None  # the call in progress: when its vehicle came, stood
+        self.last_motion: float | None = None
+
+    def forget(self) -> None:
+        self.ref = None
+        self.standing = self.occupied_since = self.still_since = self.moving_since = None
+        self.past.clear()
+
+    def _crop(self, img: np.ndarray, offset: tuple[float, float]) -> np.ndarray | None:
+        x0, y0, x1, y1 = self.box
+        dx, dy = int(round(offset[0])), int(round(offset[1]))
+        h, w = img.shape
+        if x0 + dx < 0 or y0 + dy < 0 or x1 + dx > w or y1 + dy > h or x1 <= x0 or y1 <= y0:
+            return None
+        return cv2.blur(img[y0 + dy:y1 + dy, x0 + dx:x1 + dx], (3, 3)).astype(np.float32)
+
+    def _differs(self, a: np.ndarray, b: np.ndarray) -> float:
+        """The share of the loop's pixels of a that differ from all of b's within a pixel of them (the camera
+        moves by parts of a pixel between frames, and its shift is applied in whole pixels)."""
+        lo, hi = cv2.erode(b, SHIFT_KERNEL), cv2.dilate(b, SHIFT_KERNEL)
+        off = np.maximum(lo - a, a - hi)[self.mask]
+        return np.count_nonzero(off > DIFF_GREY) / self.n
+
+    def step(self, t: float, img: np.ndarray, bg: np.ndarray | None, bg_mean: float, offset: tuple[float, float],
+             moving_here: bool, clear: bool) -> None:
+        """bg: the background (None until it is ready), bg_mean its mean grey (the light on the road, which
+        passing headlights do not change); moving_here: features move near the loop; clear: no feature is
+        near it."""
+        if moving_here:
+            self.last_motion = t
+        p = self._crop(img, offset)
+        if p is None:
+            self.forget()
+            return
+        if self.ref is None or self.ref.shape != p.shape:
+            road = None if bg is None else self._crop(bg, offset)
+            if road is None:
+                return
+            self.ref, self.ref_mean = road, bg_mean  # the background's median to start with
+        road = self.ref * (bg_mean / max(self.ref_mean, 1.0))  # the light may have changed since
+        share = self._differs(p, road)
+        # learnt while nothing is near, quickly where the patch shows the road it knows, and slowly elsewhere
+        # (a road learnt wrong is put right; a vehicle standing without features is learnt only slowly)
+        if clear and self.standing is None:
+            step = UPDATE_STEP if share < EMPTY_SHARE else RELEARN_STEP
+            self.ref += np.clip(p - self.ref, -step, step)
+            self.ref_mean = bg_mean
+        self.share = share
+        while len(self.past) >= 2 and t - self.past[1][0] >= STILL_LAG_S:
+            self.past.popleft()
+        old = self.past[0] if self.past else None
+        self.changed = 1.0 if old is None or t - old[0] < STILL_LAG_S else self._differs(p, old[1])
+        self.past.append((t, p))
+
+        occupied = self.share >= (EMPTY_SHARE if self.occupied_since is not None else OCCUPIED_SHARE)
+        self.occupied_since = _since(self.occupied_since, t, occupied)
+        still = occupied and self.changed <= STILL_SHARE
+        self.still_since = _since(self.still_since, t, still)
+        self.moving_since = _since(self.moving_since, t, occupied and not still)
+        since = [x for x in (self.still_since, self.standing and self.standing[1]) if x is not None]
+        if since and t - min(since) >= MAX_STAND_S:
+            # a change to the road (a parked car, a cone, a road learnt with a vehicle on it): learnt now
+            self.standing = self.occupied_since = self.still_since = self.moving_since = None
+            self.ref, self.ref_mean, self.last_motion = p, bg_mean, None
+        elif self.standing is None:
+            if self.still_since is not None and t - self.still_since >= STAND_S and self.last_motion is not None \
+                    and t - self.last_motion <= ARRIVE_S:
+                self.standing = (self.occupied_since, self.still_since)
+        elif not occupied or (self.moving_since is not None and t - self.moving_since >= MOVE_OFF_S):
+            self.standing = None
+
+
+def _since(since: float | None, t: float, on: bool) -> float | None:
+    """When a condition that holds at t (on) began: since, or t if it did not hold before."""
+    if not on:
+        return None
+    return t if since is None else since
+
+
+class LoopPresence:
+    """All loops' watches; ``standing`` maps the id of each loop with a standing call to the capture times its
+    vehicle came onto the loop (the patch changed) and stood still there (the call's on-time)."""
+
+    def __init__(self, site, zones) -> None:
+        H = zones.H
+        self.watches: list[LoopWatch] = []
+        shape = (zones.height, zones.width)
+        for lp in site.loops:
+            poly = np.asarray(lp.polygon_m, dtype=np.float64)
+            x0, y0 = poly.min(axis=0)
+            x1, y1 = poly.max(axis=0)
+            self.watches.append(LoopWatch(lp.id, (float(x0), float(x1)), (float(y0), float(y1)),
+                                          H.road_to_img(poly), shape))
+        self.standing: dict[str, tuple[float, float]] = {}
+
+    def step(self, t: float, img: np.ndarray, bg: np.ndarray | None, offset: tuple[float, float],
+             feat_s: np.ndarray, night: bool = False) -> None:
+        """bg: the background (None until it is ready); feat_s: the live features' road states (x, y, vx, vy).
+        At night the road under a loop is lit by every headlight coming (its background is too): no calls, and
+        what was learnt by day is forgotten."""
+        self.standing = {}
+        if night:
+            for w in self.watches:
+                w.forget()
+            return
+        bg_mean = 0.0 if bg is None else float(bg[::4, ::4].mean())
+        x, y = feat_s[:, 0], feat_s[:, 1]
+        for w in self.watches:
+            lo, hi = w.y_range
+            in_lane = (x >= w.x_range[0]) & (x <= w.x_range[1])
+            moving = in_lane & (y >= lo - ARRIVE_M) & (y <= hi + ARRIVE_M) & (np.abs(feat_s[:, 3]) >= ARRIVE_MPS)
+            near = (x >= w.x_range[0] - CLEAR_SIDE_M) & (x <= w.x_range[1] + CLEAR_SIDE_M) \
+                & (y >= lo - CLEAR_BEHIND_M) & (y <= hi + CLEAR_BEYOND_M)
+            w.step(t, img, bg, bg_mean, offset, bool(moving.any()), not near.any())
+            if w.standing is not None:
+                self.standing[w.id] = w.standing
