@@ -87,6 +87,9 @@ def test_occupancy_is_summed_loop_on_time(dense) -> None:
         for e in sc.truth.loop_events:
             if e["loop_id"] == first[r["lane"]]:
                 on += max(0.0, min(e["t_off"], p1) - max(e["t_on"], p0))
+        for (li, _), t_on in sc.truth._open.items():  # on the loop when the scene ends
+            if sc.truth.loops[li].id == first[r["lane"]]:
+                on += max(0.0, p1 - max(t_on, p0))
         assert r["occupancy_pct"] == pytest.approx(100.0 * on / (p1 - p0), abs=1e-6)
         assert 0.0 < r["occupancy_pct"] < 100.0
 
@@ -152,3 +155,14 @@ def test_stopped_queue_stands_on_the_loops() -> None:
     assert max(a["occupancy_pct"] for a in full) > 40.0
     assert min(a["speed_kmh"] for a in full if a["speed_kmh"]) < 15.0
     assert max(e["t_off"] - e["t_on"] for e in sc.truth.loop_events) > 20.0  # a vehicle stood on a loop
+
+
+def test_a_vehicle_standing_on_a_loop_when_the_scene_ends_occupies_it() -> None:
+    """Seed 2's first queue stands on both loops from 22 s until after 80 s: the period 30-60 s, complete when
+    the scene ends at 60 s, has its loops occupied throughout, though no actuation has ended (it read 0)."""
+    sc = Scene("stopped-queue", 2, period_s=30.0)
+    for _ in range(int(round(60.0 / DT))):
+        sc.step(DT)
+    last = [a for a in sc.truth.aggregates() if not a["partial"] and a["period_start"] - sc.truth.start_wall == 30.0]
+    assert len(last) == 2
+    assert all(a["occupancy_pct"] > 99.0 for a in last), last

@@ -191,8 +191,11 @@ class TruthAccumulator:
                 v = (d_m / 1000.0) / (t_s / 3600.0) if t_s > 0 else None
                 occ = None
                 if ln.id in first_loop:
-                    on = sum(max(0.0, min(e["t_off"], cov1) - max(e["t_on"], cov0))
-                             for e in self.loop_events if e["loop_id"] == first_loop[ln.id])
+                    # with the vehicles still on the loop at the end (standing in a queue, their actuation open)
+                    spans = [(e["t_on"], e["t_off"]) for e in self.loop_events if e["loop_id"] == first_loop[ln.id]]
+                    spans += [(t_on, t_end) for (li, _), t_on in self._open.items()
+                              if self.loops[li].id == first_loop[ln.id]]
+                    on = sum(max(0.0, min(t_off, cov1) - max(t_on, cov0)) for t_on, t_off in spans)
                     occ = 100.0 * on / covered
                 classes: dict[str, int] = {}
                 for c in cr:
