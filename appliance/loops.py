@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from appliance.config import LoopConfig, MeasuresConfig
-from appliance.types import ChannelState, LoopEvent
+from appliance.types import ChannelState, LoopEvent, LoopSight
 
 # A loop free for less than this between two presences gave one actuation: the second is a fragment of
 # the same vehicle (a group that came apart, a length estimate that shrank and grew). Vehicles a real loop
@@ -17,6 +17,11 @@ from appliance.types import ChannelState, LoopEvent
 # dropout filter holds it, so that a controller counting call edges does not count the fragment either.
 BRIDGE_S = 0.2
 STANDING = -1  # the id a standing call seen in the image (appliance.presence) is held under
+# A vehicle that left the loop slower than this while the image still shows it occupied may be stopping on it,
+# its track lost as it stopped: the actuation waits up to SETTLE_S for a standing call to take it on, so that
+# the call does not drop and come back (which a controller counting call edges would count twice).
+SLOW_MPS = 3.0
+SETTLE_S = 3.0
 
 
 def length_class(length_m: float | None, measures: MeasuresConfig) -> str | None:
@@ -129,11 +134,11 @@ class VirtualLoop:
         ev = self._close(vid, t_off)
         return out + ([ev] if ev is not None else [])
 
-    def hold(self, t: float, offset: float, standing: tuple[float, float] | None) -> LoopEvent | None:
+    def hold(self, t: float, offset: float, sight: LoopSight | None) -> LoopEvent | None:
         """A vehicle seen in the image standing on the loop holds it on, tracked or not (a queued vehicle's
-        features are often lost). standing: the capture times it came onto the loop and stood still there
-        (None: no vehicle stands on it now). The call goes on when it stood, or when the loop went free if it
-        came before that: then it is the vehicle the loop already counted. Else it is counted."""
+        features are often lost). The call goes on when it stood, or when the loop went free if it came
+        before that: then it is the vehicle the loop already counted. Else it is counted."""
+        standing = sight.standing if sight is not None else None
         if standing is None:
             return self._close(STANDING, t) if STANDING in self.active else None
         if STANDING in self.active:
@@ -154,15 +159,20 @@ class VirtualLoop:
             return self._close(vid, t)
         return None
 
-    def tick(self, t: float) -> LoopEvent | None:
-        """Capture time t has come: an actuation whose loop has been free for BRIDGE_S ends."""
-        if self.act is not None and not self.active and t > self.act["t_off"] + BRIDGE_S:
-            return self._emit()
-        return None
+    def tick(self, t: float, sight: LoopSight | None = None) -> LoopEvent | None:
+        """Capture time t has come: an actuation whose loop has been free for BRIDGE_S ends, unless the image
+        (sight) shows its last vehicle, slow when it left, still on the loop: see SETTLE_S."""
+        act = self.act
+        if act is None or self.active or t <= act["t_off"] + BRIDGE_S:
+            return None
+        if sight is not None and sight.came is not None and sight.came <= act["t_off"] \
+                and act["last_speed"] is not None and act["last_speed"] < SLOW_MPS and t - act["t_off"] < SETTLE_S:
+            return None
+        return self._emit()
 
     def _start(self, vid: int, t_on: float, offset: float, counted: bool = True) -> None:
         self.act = {"vid": vid, "t_on": t_on, "wall_on": t_on + offset, "t_off": t_on, "speed": None, "length": None,
-                    "counted": counted}
+                    "counted": counted, "last_speed": None}
         if counted:
             self.count += 1
             self.last_on_wall = t_on + offset
@@ -173,7 +183,8 @@ class VirtualLoop:
         self.left.add(vid)
         act = self.act
         t_off = max(t_off, p.t_on)
-        act["t_off"] = max(act["t_off"], t_off)
+        if t_off >= act["t_off"]:
+            act["t_off"], act["last_speed"] = t_off, (p.speeds[-1] if p.speeds else None)
         if vid == act["vid"]:
             speed_kmh = float(np.mean(p.speeds)) * 3.6 if p.speeds else None
             other = self.partner

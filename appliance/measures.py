@@ -12,7 +12,7 @@ from appliance.edie import EdieAccumulator, back_to_entry, edie_qkv
 from appliance.lanes import LaneHistory, LaneMap
 from appliance.loops import VirtualLoop, length_class
 from appliance.periods import PERIOD_TOLERANCE_S, PeriodClock
-from appliance.types import ChannelState, LaneAggregate, LoopEvent, VehicleRecord, VehicleState
+from appliance.types import ChannelState, LaneAggregate, LoopEvent, LoopSight, VehicleRecord, VehicleState
 
 LOST_AFTER_S = 2.0  # a vehicle not seen for this long (and never finished) is forgotten
 # Two fronts crossing one lane's count line closer in time than a car can follow another are one vehicle
@@ -167,9 +167,8 @@ class TrafficMeasures:
     # ------------------------------------------------------------------ per step
 
     def step(self, t: float, wall: float, vehicles: list[VehicleState],
-             standing: dict[str, tuple[float, float]] | None = None) -> MeasureUpdate:
-        """standing: the loops the image shows a vehicle standing on, with the capture times it came onto the
-        loop and stood still there (see appliance.presence)."""
+             sights: dict[str, LoopSight] | None = None) -> MeasureUpdate:
+        """sights: what the image shows on each loop (appliance.presence)."""
         out = MeasureUpdate()
         offset = wall - t
         if self.clock.current is None:
@@ -228,9 +227,10 @@ class TrafficMeasures:
             # stands, so it gets its record. (A vehicle still tracked when a replay or the service stops gets none.)
             if tr.crossed:
                 out.vehicles.append(self._record(vid, tr, tr.prev[0] - tr.first_t))
-        standing = standing or {}
+        sights = sights or {}
         for lp in self.loops:
-            for ev in (lp.hold(t, offset, standing.get(lp.cfg.id)), lp.tick(t)):
+            sight = sights.get(lp.cfg.id)
+            for ev in (lp.hold(t, offset, sight), lp.tick(t, sight)):
                 if ev is not None:
                     out.loop_events.append(ev)
         for p in self.clock.advance(wall):

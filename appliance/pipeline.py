@@ -20,7 +20,7 @@ from appliance.grouping import RECHECK_S, SETTLED_AGE, STILL_M, STILL_S, Grouper
 from appliance.presence import LoopPresence
 from appliance.stabilise import Stabiliser
 from appliance.tracker import FeatureTracker
-from appliance.types import Frame, VehicleState
+from appliance.types import Frame, LoopSight, VehicleState
 from appliance.zones import SiteZones
 
 REPEAT_GRID = 4  # subsampling step of the repeated-frame check
@@ -204,8 +204,7 @@ class VisionPipeline:
         states = self._hold_new(states)
         c4 = time.perf_counter()
         bg = self.background
-        self.presence.step(frame.t, img, bg.bg if bg.ready else None, self.offset, tr.s[tr.live()],
-                           night=self.grouper.lights_only)
+        self.presence.step(frame.t, img, bg.bg if bg.ready else None, self.offset, tr.s[tr.live()])
         c5 = time.perf_counter()
         tm["stabilise"] += c1 - c0
         tm["track"] += c2 - c1
@@ -224,9 +223,9 @@ class VisionPipeline:
         return states
 
     @property
-    def standing_loops(self) -> dict[str, tuple[float, float]]:
-        """Loops the image shows a vehicle standing on, with the times it came and stood (appliance.presence)."""
-        return self.presence.standing
+    def loop_sights(self) -> dict[str, LoopSight]:
+        """What the image shows on each loop (appliance.presence)."""
+        return self.presence.sights
 
     def _is_shadow(self, img: np.ndarray, pts: np.ndarray, caster: np.ndarray | None) -> bool:
         """The grouper's image test: are pts only a shadow on the road (that reaches the caster's points)? With

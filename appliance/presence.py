@@ -8,6 +8,8 @@ from collections import deque
 import cv2
 import numpy as np
 
+from appliance.types import LoopSight
+
 DIFF_GREY = 24  # grey levels (after a 3x3 mean) between a vehicle's pixel and the road under it
 OCCUPIED_SHARE = 0.35  # of the patch's pixels: something is on the loop ...
 EMPTY_SHARE = 0.12  # ... the loop shows the road again
@@ -25,6 +27,10 @@ CLEAR_BEYOND_M = 8.0  # ... and this far beyond it (raised parts of vehicles nea
 CLEAR_SIDE_M = 1.0  # ... and this far to the sides of its lane (tall neighbours hide it too)
 UPDATE_STEP = 2.0  # grey levels per frame
 RELEARN_STEP = 0.02
+# The background's mean grey below which the road under a loop is lit by every headlight coming, at dusk and
+# at night: learnt lit or dark, the empty road reads as a vehicle standing (the synthetic day-to-night scenes
+# give false calls from a background mean of 79 down; their days are 100-110, dusk 51-59, night 12-22)
+DAYLIGHT_GREY = 85.0
 MAX_STAND_S = 240.0  # a standing call or a still patch this long is a change to the road: learnt
 SHIFT_KERNEL = np.ones((3, 3), np.uint8)
 MARGIN_PX = 1  # the patch's mask is the loop's polygon shrunk by this much (lane markings at its sides)
@@ -123,7 +129,8 @@ class LoopWatch:
         elif self.standing is None:
             if self.still_since is not None and t - self.still_since >= STAND_S and self.last_motion is not None \
                     and t - self.last_motion <= ARRIVE_S:
-                self.standing = (self.occupied_since, self.still_since)
+                # still since: the patch matched itself STILL_LAG_S before that
+                self.standing = (self.occupied_since, max(self.occupied_since, self.still_since - STILL_LAG_S))
         elif not occupied or (self.moving_since is not None and t - self.moving_since >= MOVE_OFF_S):
             self.standing = None
 
@@ -136,8 +143,8 @@ def _since(since: float | None, t: float, on: bool) -> float | None:
 
 
 class LoopPresence:
-    """All loops' watches; ``standing`` maps the id of each loop with a standing call to the capture times its
-    vehicle came onto the loop (the patch changed) and stood still there (the call's on-time)."""
+    """All loops' watches; ``sights`` holds what the image shows on each loop (an empty LoopSight while the
+    image is not asked: at night, or before the road under the loop is known)."""
 
     def __init__(self, site, zones) -> None:
         H = zones.H
@@ -149,19 +156,18 @@ class LoopPresence:
             x1, y1 = poly.max(axis=0)
             self.watches.append(LoopWatch(lp.id, (float(x0), float(x1)), (float(y0), float(y1)),
                                           H.road_to_img(poly), shape))
-        self.standing: dict[str, tuple[float, float]] = {}
+        self.sights: dict[str, LoopSight] = {w.id: LoopSight() for w in self.watches}
 
     def step(self, t: float, img: np.ndarray, bg: np.ndarray | None, offset: tuple[float, float],
-             feat_s: np.ndarray, night: bool = False) -> None:
+             feat_s: np.ndarray) -> None:
         """bg: the background (None until it is ready); feat_s: the live features' road states (x, y, vx, vy).
-        At night the road under a loop is lit by every headlight coming (its background is too): no calls, and
-        what was learnt by day is forgotten."""
-        self.standing = {}
-        if night:
+        Below DAYLIGHT_GREY the image is not asked, and what was learnt is forgotten."""
+        bg_mean = 0.0 if bg is None else float(bg[::4, ::4].mean())
+        if bg_mean < DAYLIGHT_GREY:
             for w in self.watches:
                 w.forget()
+                self.sights[w.id] = LoopSight()
             return
-        bg_mean = 0.0 if bg is None else float(bg[::4, ::4].mean())
         x, y = feat_s[:, 0], feat_s[:, 1]
         for w in self.watches:
             lo, hi = w.y_range
@@ -170,5 +176,4 @@ class LoopPresence:
             near = (x >= w.x_range[0] - CLEAR_SIDE_M) & (x <= w.x_range[1] + CLEAR_SIDE_M) \
                 & (y >= lo - CLEAR_BEHIND_M) & (y <= hi + CLEAR_BEYOND_M)
             w.step(t, img, bg, bg_mean, offset, bool(moving.any()), not near.any())
-            if w.standing is not None:
-                self.standing[w.id] = w.standing
+            self.sights[w.id] = LoopSight(w.occupied_since, w.standing)

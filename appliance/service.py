@@ -395,7 +395,7 @@ class Service:
                 return
             if self.health.active(HealthFault.CONFIG):
                 self.health.set(HealthFault.CONFIG, False, frame.t, frame.wall, "frames accepted again")
-            upd = self.measures.step(frame.t, frame.wall, vehicles, getattr(self.pipeline, "standing_loops", None))
+            upd = self.measures.step(frame.t, frame.wall, vehicles, getattr(self.pipeline, "loop_sights", None))
             channels = self.measures.channels()
         self.tracked = sum(1 for v in vehicles if not v.finished)
         h = self.health

@@ -128,6 +128,15 @@ class HealthFault(IntEnum):
 
 
 @dataclass(slots=True)
+class LoopSight:
+    """What the image shows on a loop (appliance.presence): since when something has been on it (None: the
+    road), and the standing call it gives: the times its vehicle came onto the loop and stood still there."""
+
+    came: float | None = None
+    standing: tuple[float, float] | None = None
+
+
+@dataclass(slots=True)
 class ChannelState:
     """What one detector channel (one virtual loop) shows the controller now."""
 

@@ -153,7 +153,7 @@ def replay_video(
                 states = pipe.step(frame)
             except ValueError as e:  # a frame the pipeline cannot take (e.g. the size changed mid-stream)
                 raise ReplayError(f"{video}: {e}") from None
-            upd = measures.step(frame.t, frame.wall, states, getattr(pipe, "standing_loops", None))
+            upd = measures.step(frame.t, frame.wall, states, getattr(pipe, "loop_sights", None))
             res.periods += upd.periods
             res.loop_events += upd.loop_events
             res.vehicles += upd.vehicles
