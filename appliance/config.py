@@ -119,6 +119,8 @@ class TrackingParams:
     segmentation_per_m: float = 0.1  # extra along-road allowance per metre travelled (feature heights)
     static_drop_s: float = 1.0  # a feature that has not moved static_min_move_px by then is dropped
     static_min_move_px: float = 4.0
+    # hold a loop's call while the image shows a vehicle standing on it (by day: appliance.presence)
+    standing_calls: bool = True
 
 
 @dataclass

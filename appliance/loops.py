@@ -144,6 +144,9 @@ class VirtualLoop:
         if STANDING in self.active:
             return None
         came, stood = standing
+        if self.act is not None and self.active:  # on the loop with the tracker's vehicles: the same actuation
+            self.active[STANDING] = _Presence(max(came, self.act["t_on"]), max(came, self.act["t_on"]) + offset)
+            return None
         last_off = self.act["t_off"] if self.act is not None else self.last_off
         seen = last_off is not None and last_off >= came
         t_on = min(stood, last_off) if seen else stood

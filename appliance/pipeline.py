@@ -89,7 +89,7 @@ class VisionPipeline:
         self.tracker = FeatureTracker(p, H.H, H.Hinv)
         self.grouper = Grouper(p, self.zones)
         self.background = Background()
-        self.presence = LoopPresence(site, self.zones)
+        self.presence = LoopPresence(site, self.zones) if p.standing_calls else None
         self.prev: np.ndarray | None = None
         self.prev_grid: np.ndarray | None = None
         self.prev_t: float | None = None
@@ -204,7 +204,8 @@ class VisionPipeline:
         states = self._hold_new(states)
         c4 = time.perf_counter()
         bg = self.background
-        self.presence.step(frame.t, img, bg.bg if bg.ready else None, self.offset, tr.s[tr.live()])
+        if self.presence is not None:
+            self.presence.step(frame.t, img, bg.bg if bg.ready else None, self.offset, tr.s[tr.live()])
         c5 = time.perf_counter()
         tm["stabilise"] += c1 - c0
         tm["track"] += c2 - c1
@@ -224,8 +225,8 @@ class VisionPipeline:
 
     @property
     def loop_sights(self) -> dict[str, LoopSight]:
-        """What the image shows on each loop (appliance.presence)."""
-        return self.presence.sights
+        """What the image shows on each loop (appliance.presence), if asked (tracking.standing_calls)."""
+        return self.presence.sights if self.presence is not None else {}
 
     def _is_shadow(self, img: np.ndarray, pts: np.ndarray, caster: np.ndarray | None) -> bool:
         """The grouper's image test: are pts only a shadow on the road (that reaches the caster's points)? With

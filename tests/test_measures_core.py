@@ -10,8 +10,9 @@ import pytest
 
 from appliance.config import parse_site
 from appliance.edie import clip_segments
+from appliance.loops import SETTLE_S, STANDING
 from appliance.measures import LOST_AFTER_S, TrafficMeasures
-from appliance.types import VehicleState
+from appliance.types import LoopSight, VehicleState
 
 EPOCH = 1767225600.0  # 2026-01-01T00:00:00Z, a period boundary
 
@@ -652,3 +653,69 @@ def test_a_line_crossed_before_the_first_report_counts_at_the_reports_spot_speed
     first = VehicleState(7, 0.8, -2.5, 44.0, 48.5, 0.0, -21.0, 4.5, 5, trajectory=trajectory, spot_vy=-20.0)
     crossings = tm.step(0.8, EPOCH + 0.8, [first]).crossings
     assert len(crossings) == 1 and crossings[0].speed_kmh == pytest.approx(72.0)
+
+
+def _queue(tm, seconds: float, sight_at, track_until: float, fps: float = 25.0, finish: bool = False):
+    """A lane-1 car braking at 2 m/s2 to stand with its front at 29 m (over loop L1 [30, 31.8]) from 5 s,
+    tracked until track_until (then gone: lost, or finished by the tracker if finish); sight_at(t): the
+    LoopSight of L1 then. Returns the L1 events and the call per frame."""
+    events, calls = [], []
+    last = int(np.ceil(track_until * fps)) - 1
+    for i in range(int(round(seconds * fps))):
+        t = i / fps
+        dt = max(5.0 - t, 0.0)
+        y, v = 29.0 + dt * dt, 2.0 * dt
+        states = [VehicleState(1, t, -2.5, y, y + 4.5, 0.0, -v, 4.5, 5, finished=finish and i == last)] \
+            if i <= last else []
+        upd = tm.step(t, EPOCH + t, states, {"L1": sight_at(t)})
+        events += [e for e in upd.loop_events if e.loop_id == "L1"]
+        calls.append((t, tm.channels()[0].call))
+    return events, calls
+
+
+@pytest.mark.parametrize("track_until, finish", [(4.6, False), (4.6, True), (30.0, False)])
+def test_a_car_standing_on_its_loop_is_one_actuation_whether_its_track_ends_or_not(track_until, finish):
+    """The car comes onto L1 at 3.33 s and stands from 5 s; the image shows it on the loop from 3.8 s and gives
+    a standing call from 6.5 s (came 3.8, stood 5.0) until 40 s. Its track ends at 4.6 s, crawling (0.8 m/s):
+    lost (the measures keep it LOST_AFTER_S), or finished by the tracker (it has stopped dead); or it lasts
+    beyond the call. Each way one actuation, counted once, on until 40 s, the call never dropping: an
+    actuation whose slow vehicle left it waits (SETTLE_S) for the standing call while the image shows the loop
+    occupied."""
+    site = make_site(loops=[{"id": "L1", "lane": 1, "channel": 1, "y_m": 30.0, "length_m": 1.8}])
+    tm = TrafficMeasures(site)
+
+    def sight(t):
+        return LoopSight(3.8 if 3.8 <= t < 40.0 else None, (3.8, 5.0) if 6.5 <= t < 40.0 else None)
+
+    events, calls = _queue(tm, 45.0, sight, track_until, finish=finish)
+    assert tm.channels()[0].count == 1
+    assert len(events) == 1, events
+    assert events[0].t_on == pytest.approx(5.0 - 2.8 ** 0.5, abs=0.041)  # the front over 31.8 m
+    assert events[0].t_off == pytest.approx(40.0 if track_until < 40.0 else 30.0, abs=0.041)
+    assert all(c for t, c in calls if events[0].t_on + 0.05 < t < events[0].t_off)
+
+
+def test_a_standing_car_the_tracker_never_saw_is_counted_from_when_it_stood():
+    site = make_site(loops=[{"id": "L1", "lane": 1, "channel": 1, "y_m": 30.0, "length_m": 1.8}])
+    tm = TrafficMeasures(site)
+
+    def sight(t):
+        return LoopSight(3.8 if 3.8 <= t < 40.0 else None, (3.8, 5.0) if 6.5 <= t < 40.0 else None)
+
+    events, calls = _queue(tm, 45.0, sight, track_until=0.0)
+    assert tm.channels()[0].count == 1 and len(events) == 1
+    assert events[0].t_on == 5.0 and events[0].t_off == pytest.approx(40.0, abs=0.041)
+    assert events[0].speed_kmh is None and events[0].vehicle_id == STANDING
+
+
+def test_a_slow_vehicle_leaving_an_occupied_loop_waits_for_a_standing_call_no_longer_than_settle_s():
+    """The track ends at 4.6 s (crawling) and the image shows the loop occupied, but no standing call comes
+    (the vehicle moved on, and a neighbour's roof covers the loop): the actuation ends where the track left
+    it, emitted SETTLE_S later; the call was held that long."""
+    site = make_site(loops=[{"id": "L1", "lane": 1, "channel": 1, "y_m": 30.0, "length_m": 1.8}])
+    tm = TrafficMeasures(site)
+    events, calls = _queue(tm, 12.0, lambda t: LoopSight(3.8 if t >= 3.8 else None, None), track_until=4.6,
+                           finish=True)
+    assert len(events) == 1 and events[0].t_off == pytest.approx(4.56, abs=0.041)
+    on = [t for t, c in calls if c]
+    assert max(on) == pytest.approx(4.56 + SETTLE_S, abs=0.081)
