@@ -136,8 +136,9 @@ class VirtualLoop:
 
     def hold(self, t: float, offset: float, sight: LoopSight | None) -> LoopEvent | None:
         """A vehicle seen in the image standing on the loop holds it on, tracked or not (a queued vehicle's
-        features are often lost). The call goes on when it stood, or when the loop went free if it came
-        before that: then it is the vehicle the loop already counted. Else it is counted."""
+        features are often lost). With the tracker's vehicles on the loop it is part of their actuation. If it
+        is the vehicle the loop saw last, the call goes on again where that one's went off (if it went off), and
+        it is not counted again; else it goes on when it stood, and it is counted."""
         standing = sight.standing if sight is not None else None
         if standing is None:
             return self._close(STANDING, t) if STANDING in self.active else None
@@ -148,7 +149,9 @@ class VirtualLoop:
             self.active[STANDING] = _Presence(max(came, self.act["t_on"]), max(came, self.act["t_on"]) + offset)
             return None
         last_off = self.act["t_off"] if self.act is not None else self.last_off
-        seen = last_off is not None and last_off >= came
+        # the vehicle the loop saw last if it was still on the loop as that one left it and stood soon after
+        # (its track lost as it stopped); else one the tracker never put on the loop
+        seen = last_off is not None and came <= last_off and stood - last_off <= SETTLE_S
         t_on = min(stood, last_off) if seen else stood
         ev = self.tick(t_on)
         self.active[STANDING] = _Presence(t_on, t_on + offset)

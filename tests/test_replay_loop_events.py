@@ -88,3 +88,43 @@ def test_tracked_loop_actuations_match_the_truth_in_dense_traffic(tmp_path):
     for ch, n in want.items():
         assert abs(got.get(ch, 0) - n) <= max(4, 0.1 * n), (got, want)
     assert abs(sum(got.values()) - total) <= 0.05 * total, (got, want)
+
+
+def _on_intervals(rows) -> dict[str, list[tuple[float, float]]]:
+    out: dict[str, list] = {}
+    for loop_id, t_on, t_off in rows:
+        out.setdefault(loop_id, []).append((float(t_on), float(t_off)))
+    return out
+
+
+def _overlap(a: list, b: list) -> float:
+    return sum(max(0.0, min(y, e) - max(x, s)) for x, y in a for s, e in b)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [11, 12])
+def test_loops_under_a_standing_queue_stay_on(tmp_path, seed):
+    """A red light's queue stands over both loops for about a minute (stopped-queue, first 130 s: the stand and
+    the discharge). Its cars lose their features as they stand: the tracker's actuations alone covered 12 %
+    (loop 1) and 38 % (loop 2) of the loops' true on-time over a whole 320 s scene; the image's standing
+    calls hold the loops. Measured (the replay's actuations against the truth's), loops 1 and 2: seed 11
+    covers 90 and 90 % of the true on-time, the actuations summing to 108 and 99 % of it; seed 12 91 and 89 %,
+    108 and 97 %. Bounds: 80 % covered, the sum within 15 % (a queued car's roof covers the loop behind it, so
+    a gap in the queue over a loop reads occupied; the tracker's actuations of crawling cars end late)."""
+    repo = Path(__file__).resolve().parent.parent
+    d = tmp_path / "queue"
+    roadwatch("simulate", "--preset", "stopped-queue", "--seed", str(seed), "--seconds", "130", "--out", str(d),
+              "-q", cwd=repo)
+    out = tmp_path / "r.sqlite"
+    roadwatch("replay", str(d / "video.mp4"), "--config", str(d / "site.toml"), "--out", str(out), cwd=repo)
+    with sqlite3.connect(out) as c:
+        got = _on_intervals(c.execute("SELECT loop_id, t_on, t_off FROM loop_events").fetchall())
+    want = _on_intervals((r["loop_id"], r["t_on"], r["t_off"]) for r in csv.DictReader(open(d / "truth" /
+                                                                                              "loop_events.csv")))
+    for loop_id, truth in want.items():
+        on = sum(b - a for a, b in truth)
+        assert on > 60.0  # the queue stood over it
+        mine = got.get(loop_id, [])
+        print(loop_id, f"covered {_overlap(truth, mine) / on:.3f} sum {sum(b - a for a, b in mine) / on:.3f}")
+        assert _overlap(truth, mine) >= 0.80 * on, (loop_id, mine)
+        assert abs(sum(b - a for a, b in mine) - on) <= 0.15 * on, (loop_id, mine)
