@@ -20,7 +20,7 @@ STANDING = -1  # the id a standing call seen in the image (appliance.presence) i
 # A vehicle that left the loop slower than this while the image still shows it occupied may be stopping on it,
 # its track lost as it stopped: the actuation waits up to SETTLE_S for a standing call to take it on, so that
 # the call does not drop and come back (which a controller counting call edges would count twice).
-SLOW_MPS = 3.0
+SLOW_MPS = 5.0
 SETTLE_S = 3.0
 
 

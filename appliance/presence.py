@@ -8,7 +8,9 @@ from collections import deque
 import cv2
 import numpy as np
 
+from appliance.config import SiteConfig
 from appliance.types import LoopSight
+from appliance.zones import SiteZones
 
 DIFF_GREY = 24  # grey levels (after a 3x3 mean) between a vehicle's pixel and the road under it
 OCCUPIED_SHARE = 0.35  # of the patch's pixels: something is on the loop ...
@@ -17,16 +19,16 @@ STILL_LAG_S = 0.5  # the patch now against the patch this long ago ...
 STILL_SHARE = 0.04  # ... changed in at most this share of its pixels: nothing on it moves
 STAND_S = 1.0  # occupied and still this long: a vehicle stands on the loop
 MOVE_OFF_S = 2.0  # a standing vehicle that moves off holds the call this long at most (its rear leaves the loop)
-ARRIVE_S = 30.0  # a standing call needs features moving over the loop's stretch of lane this recently
-ARRIVE_M = 15.0  # ... within this distance of the loop
-ARRIVE_MPS = 1.0
+ARRIVE_S = 30.0  # a standing call needs features moving over the loop's stretch of lane this recently ...
+ARRIVE_M = 15.0  # ... within this distance of the loop ...
+ARRIVE_MPS = 1.0  # ... at least this fast (a patch that changed with nothing coming: a shadow, a parked car)
 # The empty road under a loop is learnt (an approximate median) only while no feature is near: the
 # background's median learns a busy lane's traffic, and a standing queue
-CLEAR_BEHIND_M = 3.0  # ... features between this far past the loop (towards the camera) ...
-CLEAR_BEYOND_M = 8.0  # ... and this far beyond it (raised parts of vehicles near the loop project there)
-CLEAR_SIDE_M = 1.0  # ... and this far to the sides of its lane (tall neighbours hide it too)
-UPDATE_STEP = 2.0  # grey levels per frame
-RELEARN_STEP = 0.02
+CLEAR_NEAR_M = 3.0  # ... no feature from this far on the camera's side of the loop ...
+CLEAR_FAR_M = 8.0  # ... to this far beyond it (a raised part of a vehicle over the loop is placed there) ...
+CLEAR_SIDE_M = 1.0  # ... and this far to its sides (a tall neighbour hides it too)
+UPDATE_STEP = 2.0  # grey levels per frame where the patch shows the road it knows ...
+RELEARN_STEP = 0.02  # ... and elsewhere
 # The background's mean grey below which the road under a loop is lit by every headlight coming, at dusk and
 # at night: learnt lit or dark, the empty road reads as a vehicle standing (the synthetic day-to-night scenes
 # give false calls from a background mean of 79 down; their days are 100-110, dusk 51-59, night 12-22)
@@ -50,13 +52,13 @@ class LoopWatch:
         bx0, by0, bx1, by1 = self.box
         mask = np.zeros((max(by1 - by0, 1), max(bx1 - bx0, 1)), np.uint8)
         cv2.fillPoly(mask, [np.round(poly_px - (bx0, by0)).astype(np.int32)], 1)
-        if MARGIN_PX and mask.sum() > 40:
+        if MARGIN_PX and mask.sum() > 40:  # a loop a few pixels across keeps them all
             mask = cv2.erode(mask, np.ones((2 * MARGIN_PX + 1,) * 2, np.uint8))
         self.mask = mask.astype(bool)
         self.n = max(int(self.mask.sum()), 1)
         self.past: deque[tuple[float, np.ndarray]] = deque()
         self.ref: np.ndarray | None = None
-        self.ref_mean = 1.0  # the frame's mean grey when the road was last learnt
+        self.ref_mean = 1.0  # the background's mean grey when the road was last learnt
         self.share = 0.0
         self.changed = 1.0
         self.occupied_since: float | None = None
@@ -144,18 +146,24 @@ def _since(since: float | None, t: float, on: bool) -> float | None:
 
 class LoopPresence:
     """All loops' watches; ``sights`` holds what the image shows on each loop (an empty LoopSight while the
-    image is not asked: at night, or before the road under the loop is known)."""
+    image is not asked: below DAYLIGHT_GREY, or before the background is ready)."""
 
-    def __init__(self, site, zones) -> None:
+    def __init__(self, site: SiteConfig, zones: SiteZones) -> None:
         H = zones.H
         self.watches: list[LoopWatch] = []
+        self.clear: list[tuple[float, float]] = []  # along-road window per loop that must hold no feature
         shape = (zones.height, zones.width)
         for lp in site.loops:
             poly = np.asarray(lp.polygon_m, dtype=np.float64)
             x0, y0 = poly.min(axis=0)
             x1, y1 = poly.max(axis=0)
-            self.watches.append(LoopWatch(lp.id, (float(x0), float(x1)), (float(y0), float(y1)),
-                                          H.road_to_img(poly), shape))
+            px = H.road_to_img(poly)
+            self.watches.append(LoopWatch(lp.id, (float(x0), float(x1)), (float(y0), float(y1)), px, shape))
+            xm = 0.5 * (x0 + x1)
+            rows = H.road_to_img(np.array([[xm, y0], [xm, y1]]))[:, 1]
+            away = 1.0 if rows[1] < rows[0] else -1.0  # the direction along the road away from the camera
+            near, far = (CLEAR_NEAR_M, CLEAR_FAR_M) if away > 0 else (CLEAR_FAR_M, CLEAR_NEAR_M)
+            self.clear.append((float(y0) - near, float(y1) + far))
         self.sights: dict[str, LoopSight] = {w.id: LoopSight() for w in self.watches}
 
     def step(self, t: float, img: np.ndarray, bg: np.ndarray | None, offset: tuple[float, float],
@@ -169,11 +177,10 @@ class LoopPresence:
                 self.sights[w.id] = LoopSight()
             return
         x, y = feat_s[:, 0], feat_s[:, 1]
-        for w in self.watches:
+        for w, (c0, c1) in zip(self.watches, self.clear):
             lo, hi = w.y_range
             in_lane = (x >= w.x_range[0]) & (x <= w.x_range[1])
             moving = in_lane & (y >= lo - ARRIVE_M) & (y <= hi + ARRIVE_M) & (np.abs(feat_s[:, 3]) >= ARRIVE_MPS)
-            near = (x >= w.x_range[0] - CLEAR_SIDE_M) & (x <= w.x_range[1] + CLEAR_SIDE_M) \
-                & (y >= lo - CLEAR_BEHIND_M) & (y <= hi + CLEAR_BEYOND_M)
+            near = (x >= w.x_range[0] - CLEAR_SIDE_M) & (x <= w.x_range[1] + CLEAR_SIDE_M) & (y >= c0) & (y <= c1)
             w.step(t, img, bg, bg_mean, offset, bool(moving.any()), not near.any())
             self.sights[w.id] = LoopSight(w.occupied_since, w.standing)
