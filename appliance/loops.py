@@ -18,10 +18,13 @@ from appliance.types import ChannelState, LoopEvent, LoopSight
 BRIDGE_S = 0.2
 STANDING = -1  # the id a standing call seen in the image (appliance.presence) is held under
 # A vehicle that left the loop slower than this while the image still shows it occupied may be stopping on it,
-# its track lost as it stopped: the actuation waits up to SETTLE_S for a standing call to take it on, so that
-# the call does not drop and come back (which a controller counting call edges would count twice).
+# its track lost as it stopped: the actuation waits up to WAIT_S for a standing call to take it on, so that
+# the call does not drop and come back (which a controller counting call edges would count twice). A
+# vehicle that stood within SETTLE_S of the loop's last actuation ending is taken to be its vehicle; the image
+# calls it standing 1.5 s after it stood (appliance.presence), hence the longer wait.
 SLOW_MPS = 5.0
 SETTLE_S = 3.0
+WAIT_S = 5.0
 
 
 def length_class(length_m: float | None, measures: MeasuresConfig) -> str | None:
@@ -146,7 +149,8 @@ class VirtualLoop:
             return None
         came, stood = standing
         if self.act is not None and self.active:  # on the loop with the tracker's vehicles: the same actuation
-            self.active[STANDING] = _Presence(max(came, self.act["t_on"]), max(came, self.act["t_on"]) + offset)
+            t_on = max(came, self.act["t_on"])
+            self.active[STANDING] = _Presence(t_on, t_on + offset)
             return None
         last_off = self.act["t_off"] if self.act is not None else self.last_off
         # the vehicle the loop saw last if it was still on the loop as that one left it and stood soon after
@@ -167,12 +171,12 @@ class VirtualLoop:
 
     def tick(self, t: float, sight: LoopSight | None = None) -> LoopEvent | None:
         """Capture time t has come: an actuation whose loop has been free for BRIDGE_S ends, unless the image
-        (sight) shows its last vehicle, slow when it left, still on the loop: see SETTLE_S."""
+        (sight) shows its last vehicle, slow when it left, still on the loop: see WAIT_S."""
         act = self.act
         if act is None or self.active or t <= act["t_off"] + BRIDGE_S:
             return None
         if sight is not None and sight.came is not None and sight.came <= act["t_off"] \
-                and act["last_speed"] is not None and act["last_speed"] < SLOW_MPS and t - act["t_off"] < SETTLE_S:
+                and act["last_speed"] is not None and act["last_speed"] < SLOW_MPS and t - act["t_off"] < WAIT_S:
             return None
         return self._emit()
 

@@ -10,7 +10,7 @@ import pytest
 
 from appliance.config import parse_site
 from appliance.edie import clip_segments
-from appliance.loops import SETTLE_S, STANDING
+from appliance.loops import STANDING, WAIT_S
 from appliance.measures import LOST_AFTER_S, TrafficMeasures
 from appliance.types import LoopSight, VehicleState
 
@@ -679,7 +679,7 @@ def test_a_car_standing_on_its_loop_is_one_actuation_whether_its_track_ends_or_n
     a standing call from 6.5 s (came 3.8, stood 5.0) until 40 s. Its track ends at 4.6 s, crawling (0.8 m/s):
     lost (the measures keep it LOST_AFTER_S), or finished by the tracker (it has stopped dead); or it lasts
     beyond the call. Each way one actuation, counted once, on until 40 s, the call never dropping: an
-    actuation whose slow vehicle left it waits (SETTLE_S) for the standing call while the image shows the loop
+    actuation whose slow vehicle left it waits (WAIT_S) for the standing call while the image shows the loop
     occupied."""
     site = make_site(loops=[{"id": "L1", "lane": 1, "channel": 1, "y_m": 30.0, "length_m": 1.8}])
     tm = TrafficMeasures(site)
@@ -708,14 +708,14 @@ def test_a_standing_car_the_tracker_never_saw_is_counted_from_when_it_stood():
     assert events[0].speed_kmh is None and events[0].vehicle_id == STANDING
 
 
-def test_a_slow_vehicle_leaving_an_occupied_loop_waits_for_a_standing_call_no_longer_than_settle_s():
+def test_a_slow_vehicle_leaving_an_occupied_loop_waits_for_a_standing_call_no_longer_than_wait_s():
     """The track ends at 4.6 s (crawling) and the image shows the loop occupied, but no standing call comes
     (the vehicle moved on, and a neighbour's roof covers the loop): the actuation ends where the track left
-    it, emitted SETTLE_S later; the call was held that long."""
+    it, emitted WAIT_S later; the call was held that long."""
     site = make_site(loops=[{"id": "L1", "lane": 1, "channel": 1, "y_m": 30.0, "length_m": 1.8}])
     tm = TrafficMeasures(site)
     events, calls = _queue(tm, 12.0, lambda t: LoopSight(3.8 if t >= 3.8 else None, None), track_until=4.6,
                            finish=True)
     assert len(events) == 1 and events[0].t_off == pytest.approx(4.56, abs=0.041)
     on = [t for t, c in calls if c]
-    assert max(on) == pytest.approx(4.56 + SETTLE_S, abs=0.081)
+    assert max(on) == pytest.approx(4.56 + WAIT_S, abs=0.081)
