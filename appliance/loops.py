@@ -17,12 +17,12 @@ from appliance.types import ChannelState, LoopEvent, LoopSight
 # dropout filter holds it, so that a controller counting call edges does not count the fragment either.
 BRIDGE_S = 0.2
 STANDING = -1  # the id a standing call seen in the image (appliance.presence) is held under
-# A vehicle that left the loop slower than this while the image still shows it occupied may be stopping on it,
-# its track lost as it stopped: the actuation waits up to WAIT_S for a standing call to take it on, so that
-# the call does not drop and come back (which a controller counting call edges would count twice). A
-# vehicle that stood within SETTLE_S of the loop's last actuation ending is taken to be its vehicle; the image
-# calls it standing 1.5 s after it stood (appliance.presence), hence the longer wait.
-SLOW_MPS = 5.0
+# A vehicle that left the loop while the image shows it occupied since before that may be stopping on it, its
+# track lost as it stopped: the actuation waits up to WAIT_S for a standing call to take it on, so that the
+# call does not drop and come back (which a controller counting call edges would count twice). A vehicle that
+# stood within SETTLE_S of the loop's last actuation ending is taken to be its vehicle; the image calls it
+# standing 1.5 s after it stood (appliance.presence), hence the longer wait. A vehicle coming onto the loop
+# ends the wait.
 SETTLE_S = 3.0
 WAIT_S = 5.0
 
@@ -171,18 +171,17 @@ class VirtualLoop:
 
     def tick(self, t: float, sight: LoopSight | None = None) -> LoopEvent | None:
         """Capture time t has come: an actuation whose loop has been free for BRIDGE_S ends, unless the image
-        (sight) shows its last vehicle, slow when it left, still on the loop: see WAIT_S."""
+        (sight) shows the loop occupied since before it went free: see WAIT_S."""
         act = self.act
         if act is None or self.active or t <= act["t_off"] + BRIDGE_S:
             return None
-        if sight is not None and sight.came is not None and sight.came <= act["t_off"] \
-                and act["last_speed"] is not None and act["last_speed"] < SLOW_MPS and t - act["t_off"] < WAIT_S:
+        if sight is not None and sight.came is not None and sight.came <= act["t_off"] and t - act["t_off"] < WAIT_S:
             return None
         return self._emit()
 
     def _start(self, vid: int, t_on: float, offset: float, counted: bool = True) -> None:
         self.act = {"vid": vid, "t_on": t_on, "wall_on": t_on + offset, "t_off": t_on, "speed": None, "length": None,
-                    "counted": counted, "last_speed": None}
+                    "counted": counted}
         if counted:
             self.count += 1
             self.last_on_wall = t_on + offset
@@ -193,8 +192,7 @@ class VirtualLoop:
         self.left.add(vid)
         act = self.act
         t_off = max(t_off, p.t_on)
-        if t_off >= act["t_off"]:
-            act["t_off"], act["last_speed"] = t_off, (p.speeds[-1] if p.speeds else None)
+        act["t_off"] = max(act["t_off"], t_off)
         if vid == act["vid"]:
             speed_kmh = float(np.mean(p.speeds)) * 3.6 if p.speeds else None
             other = self.partner

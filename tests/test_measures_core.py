@@ -679,8 +679,8 @@ def test_a_car_standing_on_its_loop_is_one_actuation_whether_its_track_ends_or_n
     a standing call from 6.5 s (came 3.8, stood 5.0) until 40 s. Its track ends at 4.6 s, crawling (0.8 m/s):
     lost (the measures keep it LOST_AFTER_S), or finished by the tracker (it has stopped dead); or it lasts
     beyond the call. Each way one actuation, counted once, on until 40 s, the call never dropping: an
-    actuation whose slow vehicle left it waits (WAIT_S) for the standing call while the image shows the loop
-    occupied."""
+    actuation whose vehicle left it waits (WAIT_S) for the standing call while the image shows the loop
+    occupied since before."""
     site = make_site(loops=[{"id": "L1", "lane": 1, "channel": 1, "y_m": 30.0, "length_m": 1.8}])
     tm = TrafficMeasures(site)
 
@@ -708,7 +708,7 @@ def test_a_standing_car_the_tracker_never_saw_is_counted_from_when_it_stood():
     assert events[0].speed_kmh is None and events[0].vehicle_id == STANDING
 
 
-def test_a_slow_vehicle_leaving_an_occupied_loop_waits_for_a_standing_call_no_longer_than_wait_s():
+def test_a_vehicle_leaving_an_occupied_loop_waits_for_a_standing_call_no_longer_than_wait_s():
     """The track ends at 4.6 s (crawling) and the image shows the loop occupied, but no standing call comes
     (the vehicle moved on, and a neighbour's roof covers the loop): the actuation ends where the track left
     it, emitted WAIT_S later; the call was held that long."""
