@@ -17,14 +17,17 @@ from appliance.types import ChannelState, LoopEvent, LoopSight
 # dropout filter holds it, so that a controller counting call edges does not count the fragment either.
 BRIDGE_S = 0.2
 STANDING = -1  # the id a standing call seen in the image (appliance.presence) is held under
-# A vehicle that left the loop while the image shows it occupied since before that may be stopping on it, its
-# track lost as it stopped: the actuation waits up to WAIT_S for a standing call to take it on, so that the
-# call does not drop and come back (which a controller counting call edges would count twice). A vehicle that
-# stood within SETTLE_S of the loop's last actuation ending is taken to be its vehicle; the image calls it
-# standing 1.5 s after it stood (appliance.presence), hence the longer wait. A vehicle coming onto the loop
-# ends the wait.
+# A vehicle that left the loop crawling (below CRAWL_MPS, or lost there) while the image shows the loop
+# occupied since before that may be stopping on it, its track lost as it stopped: the actuation waits up to
+# WAIT_S for a standing call to take it on, so that the call does not drop and come back (which a controller
+# counting call edges would count twice). A vehicle that stood within SETTLE_S of the loop's last actuation
+# ending is taken to be its vehicle; the image calls it standing 1.5 s after it stood (appliance.presence),
+# hence the longer wait. A vehicle coming onto the loop ends the wait. One that drove off at speed does not
+# wait: the patch may still show it (a tall body over the road behind it) as a follower arrives, whose call
+# edge a controller must see.
 SETTLE_S = 3.0
 WAIT_S = 5.0
+CRAWL_MPS = 3.0
 
 
 def length_class(length_m: float | None, measures: MeasuresConfig) -> str | None:
@@ -175,13 +178,14 @@ class VirtualLoop:
         act = self.act
         if act is None or self.active or t <= act["t_off"] + BRIDGE_S:
             return None
-        if sight is not None and sight.came is not None and sight.came <= act["t_off"] and t - act["t_off"] < WAIT_S:
+        if act["crawled"] and sight is not None and sight.came is not None and sight.came <= act["t_off"] \
+                and t - act["t_off"] < WAIT_S:
             return None
         return self._emit()
 
     def _start(self, vid: int, t_on: float, offset: float, counted: bool = True) -> None:
         self.act = {"vid": vid, "t_on": t_on, "wall_on": t_on + offset, "t_off": t_on, "speed": None, "length": None,
-                    "counted": counted}
+                    "counted": counted, "crawled": False}
         if counted:
             self.count += 1
             self.last_on_wall = t_on + offset
@@ -189,9 +193,12 @@ class VirtualLoop:
     def _close(self, vid: int, t_off: float) -> LoopEvent | None:
         """A vehicle leaves the loop; the actuation ends when no vehicle has been on it for BRIDGE_S."""
         p = self.active.pop(vid)
-        self.left.add(vid)
+        if vid != STANDING:  # a standing call's id stands for any vehicle
+            self.left.add(vid)
         act = self.act
         t_off = max(t_off, p.t_on)
+        if t_off >= act["t_off"]:  # the last to leave: did it crawl off (or was it lost crawling)?
+            act["crawled"] = not p.speeds or abs(p.speeds[-1]) < CRAWL_MPS
         act["t_off"] = max(act["t_off"], t_off)
         if vid == act["vid"]:
             speed_kmh = float(np.mean(p.speeds)) * 3.6 if p.speeds else None

@@ -223,6 +223,11 @@ class VisionPipeline:
         st["fiducials_total"] = self.stabiliser.n_total
         return states
 
+    def watch_loops(self, site: SiteConfig) -> None:
+        """The site's loops changed (a config reload that kept the pipeline): watch their patches afresh."""
+        self.site = site
+        self.presence = LoopPresence(site, self.zones) if self.p.standing_calls else None
+
     @property
     def loop_sights(self) -> dict[str, LoopSight]:
         """What the image shows on each loop (appliance.presence), if asked (tracking.standing_calls)."""

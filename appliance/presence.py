@@ -22,6 +22,11 @@ MOVE_OFF_S = 2.0  # a standing vehicle that moves off holds the call this long a
 ARRIVE_S = 30.0  # a standing call needs features moving over the loop's stretch of lane this recently ...
 ARRIVE_M = 15.0  # ... within this distance of the loop ...
 ARRIVE_MPS = 1.0  # ... at least this fast (a patch that changed with nothing coming: a shadow, a parked car)
+# The road learnt is trusted (gives calls) once the patch matched it within TRUST_S of differing from it with
+# features moving over the loop: a vehicle passed and left the road as learnt. The background a loop starts
+# from, or a patch learnt after MAX_STAND_S, may hold a vehicle standing there: when it leaves, the empty road
+# would read as one standing, and as it moves off its own patch still matches for a moment.
+TRUST_S = 2.0
 # The empty road under a loop is learnt (an approximate median) only while no feature is near: the
 # background's median learns a busy lane's traffic, and a standing queue
 CLEAR_NEAR_M = 3.0  # ... no feature from this far on the camera's side of the loop ...
@@ -36,6 +41,8 @@ DAYLIGHT_GREY = 85.0
 MAX_STAND_S = 240.0  # a standing call or a still patch this long is a change to the road: learnt
 SHIFT_KERNEL = np.ones((3, 3), np.uint8)
 MARGIN_PX = 1  # the patch's mask is the loop's polygon shrunk by this much (lane markings at its sides)
+SHIFT_PX = 16  # the patch keeps this far inside the image, so that the camera's shake and drift keep it in view
+LIGHT_STEP_PX = 16  # the frame's light against the background's is measured on this grid
 
 
 class LoopWatch:
@@ -48,7 +55,7 @@ class LoopWatch:
         h, w = shape
         x0, y0 = np.floor(poly_px.min(axis=0)).astype(int) - 1
         x1, y1 = np.ceil(poly_px.max(axis=0)).astype(int) + 2
-        self.box = (max(x0, 0), max(y0, 0), min(x1, w), min(y1, h))
+        self.box = (max(x0, SHIFT_PX), max(y0, SHIFT_PX), min(x1, w - SHIFT_PX), min(y1, h - SHIFT_PX))
         bx0, by0, bx1, by1 = self.box
         mask = np.zeros((max(by1 - by0, 1), max(bx1 - bx0, 1)), np.uint8)
         cv2.fillPoly(mask, [np.round(poly_px - (bx0, by0)).astype(np.int32)], 1)
@@ -58,7 +65,9 @@ class LoopWatch:
         self.n = max(int(self.mask.sum()), 1)
         self.past: deque[tuple[float, np.ndarray]] = deque()
         self.ref: np.ndarray | None = None
-        self.ref_mean = 1.0  # the background's mean grey when the road was last learnt
+        self.ref_light = 1.0  # the light on the road (LoopPresence.step) when the road was last learnt
+        self.trusted = False  # the road learnt was seen empty after a vehicle passed (TRUST_S)
+        self.crossed: float | None = None  # when features last moved over the loop, its patch differing
         self.share = 0.0
         self.changed = 1.0
         self.occupied_since: float | None = None
@@ -68,7 +77,7 @@ class LoopWatch:
         self.last_motion: float | None = None
 
     def forget(self) -> None:
-        self.ref = None
+        self.ref, self.trusted = None, False
         self.standing = self.occupied_since = self.still_since = self.moving_since = None
         self.past.clear()
 
@@ -87,11 +96,11 @@ class LoopWatch:
         off = np.maximum(lo - a, a - hi)[self.mask]
         return np.count_nonzero(off > DIFF_GREY) / self.n
 
-    def step(self, t: float, img: np.ndarray, bg: np.ndarray | None, bg_mean: float, offset: tuple[float, float],
-             moving_here: bool, clear: bool) -> None:
-        """bg: the background (None until it is ready), bg_mean its mean grey (the light on the road, which
-        passing headlights do not change); moving_here: features move near the loop; clear: no feature is
-        near it."""
+    def step(self, t: float, img: np.ndarray, bg: np.ndarray | None, bg_mean: float, light: float,
+             offset: tuple[float, float], moving_here: bool, passing: bool, clear: bool) -> None:
+        """bg: the background (None until it is ready), bg_mean its mean grey; light: the light on the road
+        now, in the background's grey levels (LoopPresence.step); moving_here: features move near the loop; passing: features move over it; clear: no
+        feature is near it."""
         if moving_here:
             self.last_motion = t
         p = self._crop(img, offset)
@@ -102,15 +111,20 @@ class LoopWatch:
             road = None if bg is None else self._crop(bg, offset)
             if road is None:
                 return
-            self.ref, self.ref_mean = road, bg_mean  # the background's median to start with
-        road = self.ref * (bg_mean / max(self.ref_mean, 1.0))  # the light may have changed since
+            # the background's median to start with, under the background's own light
+            self.ref, self.ref_light, self.trusted = road, bg_mean, False
+        road = self.ref * (light / max(self.ref_light, 1.0))  # the light may have changed since
         share = self._differs(p, road)
         # learnt while nothing is near, quickly where the patch shows the road it knows, and slowly elsewhere
         # (a road learnt wrong is put right; a vehicle standing without features is learnt only slowly)
         if clear and self.standing is None:
             step = UPDATE_STEP if share < EMPTY_SHARE else RELEARN_STEP
-            self.ref += np.clip(p - self.ref, -step, step)
-            self.ref_mean = bg_mean
+            self.ref = road + np.clip(p - road, -step, step)
+            self.ref_light = light
+        if passing and share >= OCCUPIED_SHARE:
+            self.crossed = t
+        elif share < EMPTY_SHARE and self.crossed is not None and t - self.crossed <= TRUST_S:
+            self.trusted = True
         self.share = share
         while len(self.past) >= 2 and t - self.past[1][0] >= STILL_LAG_S:
             self.past.popleft()
@@ -127,10 +141,10 @@ class LoopWatch:
         if since and t - min(since) >= MAX_STAND_S:
             # a change to the road (a parked car, a cone, a road learnt with a vehicle on it): learnt now
             self.standing = self.occupied_since = self.still_since = self.moving_since = None
-            self.ref, self.ref_mean, self.last_motion = p, bg_mean, None
+            self.ref, self.ref_light, self.last_motion, self.trusted = p, light, None, False
         elif self.standing is None:
-            if self.still_since is not None and t - self.still_since >= STAND_S and self.last_motion is not None \
-                    and t - self.last_motion <= ARRIVE_S:
+            if self.trusted and self.still_since is not None and t - self.still_since >= STAND_S \
+                    and self.last_motion is not None and t - self.last_motion <= ARRIVE_S:
                 # still since: the patch matched itself STILL_LAG_S before that
                 self.standing = (self.occupied_since, max(self.occupied_since, self.still_since - STILL_LAG_S))
         elif not occupied or (self.moving_since is not None and t - self.moving_since >= MOVE_OFF_S):
@@ -170,17 +184,24 @@ class LoopPresence:
              feat_s: np.ndarray) -> None:
         """bg: the background (None until it is ready); feat_s: the live features' road states (x, y, vx, vy).
         Below DAYLIGHT_GREY the image is not asked, and what was learnt is forgotten."""
-        bg_mean = 0.0 if bg is None else float(bg[::4, ::4].mean())
+        bg_sub = None if bg is None else bg[::LIGHT_STEP_PX, ::LIGHT_STEP_PX].astype(np.float32)
+        bg_mean = 0.0 if bg_sub is None else float(bg_sub.mean())
         if bg_mean < DAYLIGHT_GREY:
             for w in self.watches:
                 w.forget()
                 self.sights[w.id] = LoopSight()
             return
-        x, y = feat_s[:, 0], feat_s[:, 1]
+        # the light now: the background follows a cloud's shadow only over tens of seconds; the median ratio of
+        # the frame to it is the road's, vehicles covering less than half of the image
+        lit = bg_sub > 16.0
+        ratio = img[::LIGHT_STEP_PX, ::LIGHT_STEP_PX][lit] / bg_sub[lit]
+        light = bg_mean * (float(np.median(ratio)) if ratio.size else 1.0)
+        x, y, vy = feat_s[:, 0], feat_s[:, 1], np.abs(feat_s[:, 3])
         for w, (c0, c1) in zip(self.watches, self.clear):
             lo, hi = w.y_range
-            in_lane = (x >= w.x_range[0]) & (x <= w.x_range[1])
-            moving = in_lane & (y >= lo - ARRIVE_M) & (y <= hi + ARRIVE_M) & (np.abs(feat_s[:, 3]) >= ARRIVE_MPS)
+            in_lane = (x >= w.x_range[0]) & (x <= w.x_range[1]) & (vy >= ARRIVE_MPS)
+            moving = in_lane & (y >= lo - ARRIVE_M) & (y <= hi + ARRIVE_M)
+            passing = in_lane & (y >= lo) & (y <= hi)
             near = (x >= w.x_range[0] - CLEAR_SIDE_M) & (x <= w.x_range[1] + CLEAR_SIDE_M) & (y >= c0) & (y <= c1)
-            w.step(t, img, bg, bg_mean, offset, bool(moving.any()), not near.any())
+            w.step(t, img, bg, bg_mean, light, offset, bool(moving.any()), bool(passing.any()), not near.any())
             self.sights[w.id] = LoopSight(w.occupied_since, w.standing)

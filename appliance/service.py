@@ -644,6 +644,8 @@ class Service:
             if not keep_pipeline:
                 self.pipeline = (self.hooks.make_pipeline or _default_pipeline)(new)
                 self.pipeline.warmup()
+            elif not _same(old, new, "loops") and hasattr(self.pipeline, "watch_loops"):
+                self.pipeline.watch_loops(new)  # the loops' patches of the image, where they are now
         if not keep_outputs:
             for out in self.outputs:
                 out.stop()

@@ -719,3 +719,24 @@ def test_a_vehicle_leaving_an_occupied_loop_waits_for_a_standing_call_no_longer_
     assert len(events) == 1 and events[0].t_off == pytest.approx(4.56, abs=0.041)
     on = [t for t, c in calls if c]
     assert max(on) == pytest.approx(4.56 + WAIT_S, abs=0.081)
+
+
+def test_a_follower_after_a_vehicle_that_drove_off_gets_its_own_call_edge():
+    """Two cars at 36 km/h, 2 s apart, over L1; the image shows the loop occupied from the first car's arrival
+    until after the second's (a tall body still over it in the image, then the next car): the first drove off
+    at speed, so its actuation does not wait for a standing call (WAIT_S holds only a vehicle that crawled off
+    or was lost crawling), and the call drops between the two, as an edge-counting controller needs."""
+    site = make_site(loops=[{"id": "L1", "lane": 1, "channel": 1, "y_m": 30.0, "length_m": 1.8}])
+    tm = TrafficMeasures(site)
+    events, calls = [], []
+    for i in range(int(6.0 * 25)):
+        t = i / 25
+        states = [VehicleState(vid, t, -2.5, y, y + 4.5, 0.0, -10.0, 4.5, 5)
+                  for vid, y in ((1, 41.8 - 10.0 * t), (2, 61.8 - 10.0 * t)) if -10.0 < y < 100.0]
+        sight = LoopSight(0.9, None) if 0.9 <= t < 5.0 else LoopSight()
+        upd = tm.step(t, EPOCH + t, states, {"L1": sight})
+        events += [e for e in upd.loop_events if e.loop_id == "L1"]
+        calls.append((t, tm.channels()[0].call))
+    assert [e.vehicle_id for e in events] == [1, 2] and tm.channels()[0].count == 2
+    assert events[0].t_off == pytest.approx(1.63, abs=0.041)
+    assert not any(c for t, c in calls if events[0].t_off + 0.25 < t < 2.95)
