@@ -22,10 +22,13 @@ MOVE_OFF_S = 2.0  # a standing vehicle that moves off holds the call this long a
 ARRIVE_S = 30.0  # a standing call needs features moving over the loop's stretch of lane this recently ...
 ARRIVE_M = 15.0  # ... within this distance of the loop ...
 ARRIVE_MPS = 1.0  # ... at least this fast (a patch that changed with nothing coming: a shadow, a parked car)
-# The road learnt is trusted (gives calls) once the patch matched it within TRUST_S of differing from it with
-# features moving over the loop: a vehicle passed and left the road as learnt. The background a loop starts
-# from, or a patch learnt after MAX_STAND_S, may hold a vehicle standing there: when it leaves, the empty road
-# would read as one standing, and as it moves off its own patch still matches for a moment.
+# A patch learnt as the road after MAX_STAND_S may hold a vehicle standing there (broken down, parked, or at
+# the head of a long red's queue): when it leaves, the empty road would read as one standing. Such a road is
+# trusted (gives calls) again once the patch matched it within TRUST_S of differing from it with features
+# moving over the loop: a vehicle passed and left the road as learnt (as a vehicle moves off, its own patch
+# still matches for a moment, hence the difference first). The background a loop starts from is trusted:
+# a queue that stands on a loop as the service starts is called, and a vehicle learnt into it (one that
+# stood there through the background's first 8 s) gives a false call when it leaves, for MAX_STAND_S at most.
 TRUST_S = 2.0
 # The empty road under a loop is learnt (an approximate median) only while no feature is near: the
 # background's median learns a busy lane's traffic, and a standing queue
@@ -66,7 +69,7 @@ class LoopWatch:
         self.past: deque[tuple[float, np.ndarray]] = deque()
         self.ref: np.ndarray | None = None
         self.ref_light = 1.0  # the light on the road (LoopPresence.step) when the road was last learnt
-        self.trusted = False  # the road learnt was seen empty after a vehicle passed (TRUST_S)
+        self.trusted = False  # the road learnt gives calls (TRUST_S)
         self.crossed: float | None = None  # when features last moved over the loop, its patch differing
         self.share = 0.0
         self.changed = 1.0
@@ -112,7 +115,7 @@ class LoopWatch:
             if road is None:
                 return
             # the background's median to start with, under the background's own light
-            self.ref, self.ref_light, self.trusted = road, bg_mean, False
+            self.ref, self.ref_light, self.trusted = road, bg_mean, True
         road = self.ref * (light / max(self.ref_light, 1.0))  # the light may have changed since
         share = self._differs(p, road)
         # learnt while nothing is near, quickly where the patch shows the road it knows, and slowly elsewhere

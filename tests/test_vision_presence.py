@@ -14,6 +14,7 @@ from test_vision_pipeline import Scene, site_dict
 from appliance.config import parse_site
 from appliance.measures import TrafficMeasures
 from appliance.pipeline import VisionPipeline
+from appliance import presence
 from appliance.presence import MOVE_OFF_S, STAND_S, STILL_LAG_S, LoopPresence
 from appliance.types import Frame
 from appliance.zones import SiteZones
@@ -152,12 +153,12 @@ CASES = ["nobody came", "light", "cloud edge", "light while queued", "learnt wit
 
 
 @pytest.mark.parametrize("case", CASES)
-def test_no_standing_call_without_a_vehicle_standing(case):
+def test_no_standing_call_without_a_vehicle_standing(case, monkeypatch):
     """No call: a dark patch appearing on the loop 35 s after the last feature moved near it (a shadow of
     something beside the road creeping over it); the whole scene darkening by a third over 4 s (a cloud), or
     within 0.5 s with the background still showing the old light (a cloud's edge); the light dropping while
     something stands near the loop (the road is not learnt then) and the loop clearing after; the empty
-    road learnt with a car standing on it (a start during a red), which then drives off; the camera shaking
+    road learnt with a car standing on it (standing for MAX_STAND_S, here 15 s), which then drives off; the camera shaking
     by a pixel and a half, or drifting 12 px (the stabiliser knows it); a car standing at dusk, the road's grey
     at 77 (the road under a loop is lit by every headlight coming; the image is not asked then). Each case
     but the last two has a car driving over the loop first (at 5 s), so that the road is trusted."""
@@ -172,15 +173,17 @@ def test_no_standing_call_without_a_vehicle_standing(case):
     elif case == "cloud edge":  # with cars passing in lane 2 over and over (features near the loop)
         near = np.array([[1.75, 31.0, 0.0, -8.0]])
         out = watch(scene, 20.0, lambda t: np.vstack([feats(t), near]),
-                    light=lambda t: 1.0 - 0.35 * min(max(t - 10.0, 0.0) / 0.5, 1.0), bg_light=lambda t: 1.0)
+                    light=lambda t: 1.0 - 0.45 * min(max(t - 10.0, 0.0) / 0.5, 1.0), bg_light=lambda t: 1.0)
     elif case == "light while queued":  # something stands beside the loop from 8 to 30 s (no features move)
         still = np.array([[-1.0, 36.0, 0.0, 0.0]])
         out = watch(scene, 45.0, lambda t: np.vstack([feats(t), still]) if 8.0 <= t < 30.0 else feats(t),
-                    light=lambda t: 1.0 - 0.3 * min(max(t - 12.0, 0.0) / 4.0, 1.0))
-    elif case == "learnt with a car":
-        scene = StopScene(t_stop=-20.0, stand_s=30.0, leader=False)  # stands from the start, drives off at 10 s
-        out = watch(scene, 40.0, lambda t: features(scene, t, None) if t >= 10.0 else np.zeros((0, 4)),
-                    empty=scene)
+                    light=lambda t: 1.0 - 0.45 * min(max(t - 12.0, 0.0) / 4.0, 1.0))
+    elif case == "learnt with a car":  # it stands from 8 s (its call from 9.5 s, learnt at 24.5 s) to 35 s
+        monkeypatch.setattr(presence, "MAX_STAND_S", 15.0)
+        scene = StopScene(stand_s=27.0)
+        out = watch(scene, 55.0, lambda t: features(scene, t, 10.0) if t < 35.0 else features(scene, t, None))
+        assert len(spans(out)) == 1 and spans(out)[0][1] < 25.0, spans(out)  # its own call, until learnt
+        out = [(t, s) for t, s in out if t > 25.0]
     elif case == "shake":
         out = watch(scene, 30.0, feats, shake=lambda t: (1.5 * np.sin(7.0 * t), 1.5 * np.cos(5.0 * t)))
     elif case == "drift":
