@@ -102,8 +102,8 @@ class LoopWatch:
     def step(self, t: float, img: np.ndarray, bg: np.ndarray | None, bg_mean: float, light: float,
              offset: tuple[float, float], moving_here: bool, passing: bool, clear: bool) -> None:
         """bg: the background (None until it is ready), bg_mean its mean grey; light: the light on the road
-        now, in the background's grey levels (LoopPresence.step); moving_here: features move near the loop; passing: features move over it; clear: no
-        feature is near it."""
+        now, in the background's grey levels (LoopPresence.step); moving_here: features move near the loop;
+        passing: features move over it; clear: no feature is near it."""
         if moving_here:
             self.last_motion = t
         p = self._crop(img, offset)
@@ -187,6 +187,8 @@ class LoopPresence:
              feat_s: np.ndarray) -> None:
         """bg: the background (None until it is ready); feat_s: the live features' road states (x, y, vx, vy).
         Below DAYLIGHT_GREY the image is not asked, and what was learnt is forgotten."""
+        if not self.watches:
+            return
         bg_sub = None if bg is None else bg[::LIGHT_STEP_PX, ::LIGHT_STEP_PX].astype(np.float32)
         bg_mean = 0.0 if bg_sub is None else float(bg_sub.mean())
         if bg_mean < DAYLIGHT_GREY:
@@ -202,9 +204,9 @@ class LoopPresence:
         x, y, vy = feat_s[:, 0], feat_s[:, 1], np.abs(feat_s[:, 3])
         for w, (c0, c1) in zip(self.watches, self.clear):
             lo, hi = w.y_range
-            in_lane = (x >= w.x_range[0]) & (x <= w.x_range[1]) & (vy >= ARRIVE_MPS)
-            moving = in_lane & (y >= lo - ARRIVE_M) & (y <= hi + ARRIVE_M)
-            passing = in_lane & (y >= lo) & (y <= hi)
+            moving_in_lane = (x >= w.x_range[0]) & (x <= w.x_range[1]) & (vy >= ARRIVE_MPS)
+            moving = moving_in_lane & (y >= lo - ARRIVE_M) & (y <= hi + ARRIVE_M)
+            passing = moving_in_lane & (y >= lo) & (y <= hi)
             near = (x >= w.x_range[0] - CLEAR_SIDE_M) & (x <= w.x_range[1] + CLEAR_SIDE_M) & (y >= c0) & (y <= c1)
             w.step(t, img, bg, bg_mean, light, offset, bool(moving.any()), bool(passing.any()), not near.any())
             self.sights[w.id] = LoopSight(w.occupied_since, w.standing)
