@@ -224,9 +224,14 @@ class VisionPipeline:
         return states
 
     def watch_loops(self, site: SiteConfig) -> None:
-        """The site's loops changed (a config reload that kept the pipeline): watch their patches afresh."""
+        """The site's loops changed (a config reload that kept the pipeline): watch the new and moved loops'
+        patches afresh; a loop left as it was keeps what its watch has learnt (a road learnt afresh from the
+        background may hold a vehicle standing there now: see appliance.presence.TRUST_S)."""
+        old = self.presence
         self.site = site
         self.presence = LoopPresence(site, self.zones) if self.p.standing_calls else None
+        if old is not None and self.presence is not None:
+            self.presence.keep(old)
 
     @property
     def loop_sights(self) -> dict[str, LoopSight]:

@@ -183,6 +183,16 @@ class LoopPresence:
             self.clear.append((float(y0) - near, float(y1) + far))
         self.sights: dict[str, LoopSight] = {w.id: LoopSight() for w in self.watches}
 
+    def keep(self, old: LoopPresence) -> None:
+        """Take over old's watches of the loops that have not changed (same id, same patch)."""
+        was = {w.id: (w, c) for w, c in zip(old.watches, old.clear)}
+        for i, w in enumerate(self.watches):
+            prev = was.get(w.id)
+            if prev is not None and prev[0].box == w.box and np.array_equal(prev[0].mask, w.mask) \
+                    and prev[1] == self.clear[i]:
+                self.watches[i] = prev[0]
+                self.sights[w.id] = old.sights[w.id]
+
     def step(self, t: float, img: np.ndarray, bg: np.ndarray | None, offset: tuple[float, float],
              feat_s: np.ndarray) -> None:
         """bg: the background (None until it is ready); feat_s: the live features' road states (x, y, vx, vy).

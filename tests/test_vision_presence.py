@@ -232,7 +232,8 @@ def test_the_pipeline_and_the_measures_keep_a_standing_car_on_its_loop(standing_
 
 def test_a_reload_that_moves_only_the_loops_watches_them_where_they_are_now(tmp_path, shared_data):
     """The pipeline is kept (its tracks go on), but its loop patches follow the loops: the moved loop's patch
-    is where the new config puts it, as a pipeline built for it would have it."""
+    is where the new config puts it, as a pipeline built for it would have it; the loop left as it was keeps
+    its watch (what it learnt of the road under it)."""
     import tomllib
 
     import tomli_w
@@ -251,7 +252,8 @@ def test_a_reload_that_moves_only_the_loops_watches_them_where_they_are_now(tmp_
     cfg.write_text(tomli_w.dumps(d))
     new = load_site(cfg)
     before = [w.box for w in pipe.presence.watches]
+    kept = pipe.presence.watches[1]
     svc._apply(new)
-    assert svc.pipeline is pipe
+    assert svc.pipeline is pipe and pipe.presence.watches[1] is kept
     want = [w.box for w in VisionPipeline(new).presence.watches]
     assert [w.box for w in pipe.presence.watches] == want and want[0] != before[0] and want[1] == before[1]
