@@ -740,3 +740,25 @@ def test_a_follower_after_a_vehicle_that_drove_off_gets_its_own_call_edge():
     assert [e.vehicle_id for e in events] == [1, 2] and tm.channels()[0].count == 2
     assert events[0].t_off == pytest.approx(1.63, abs=0.041)
     assert not any(c for t, c in calls if events[0].t_off + 0.25 < t < 2.95)
+
+
+def test_a_vehicle_driving_onto_a_loop_held_by_a_standing_call_is_counted():
+    """The image gives a standing call on L1 from 3.5 s (came 1 s, stood 2 s) to 30 s, the tracker seeing nothing
+    there; at 10 s a tracked car drives onto the loop at 36 km/h. Nobody drives through a vehicle standing on a
+    loop: the standing call is what a queue's bodies show over it, and the car is a new actuation, counted, its
+    call going on where the standing one's ends (the call stays on throughout)."""
+    site = make_site(loops=[{"id": "L1", "lane": 1, "channel": 1, "y_m": 30.0, "length_m": 1.8}])
+    tm = TrafficMeasures(site)
+    events, calls = [], []
+    for i in range(int(32.0 * 25)):
+        t = i / 25
+        y = 31.8 - 10.0 * (t - 10.0)
+        states = [VehicleState(1, t, -2.5, y, y + 4.5, 0.0, -10.0, 4.5, 5)] if 5.0 <= t and y > -10.0 else []
+        sight = LoopSight(1.0, (1.0, 2.0)) if 3.5 <= t < 30.0 else LoopSight()
+        upd = tm.step(t, EPOCH + t, states, {"L1": sight})
+        events += [e for e in upd.loop_events if e.loop_id == "L1"]
+        calls.append((t, tm.channels()[0].call))
+    assert [e.vehicle_id for e in events] == [STANDING, 1] and tm.channels()[0].count == 2
+    assert events[0].t_on == 2.0 and events[0].t_off == pytest.approx(10.0, abs=0.041)
+    assert events[1].t_on == pytest.approx(10.0, abs=0.041)
+    assert all(c for t, c in calls if 3.5 <= t < 30.0)
