@@ -123,8 +123,7 @@ class VirtualLoop:
             if list(self.active) == [STANDING] and abs(v1) >= CRAWL_MPS and vid not in self.left:
                 # nobody drives onto a loop through a vehicle standing on it: the image's standing call is one
                 # the queue's bodies give, hiding the loop; this vehicle is a new actuation (the call stays on)
-                del self.active[STANDING]
-                self.act["t_off"] = max(self.act["t_off"], t_on)
+                self._close(STANDING, t_on)
                 ev = self._emit()
             else:
                 ev = self.tick(t_on)  # the loop was free long enough: the last actuation is over

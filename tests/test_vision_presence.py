@@ -103,19 +103,18 @@ def passing() -> tuple[Scene, object]:
 
 
 def watch(scene: Scene, seconds: float, feats, light=lambda t: 1.0, shake=lambda t: (0.0, 0.0), bg_light=None,
-          empty: Scene | None = None, stabilised: bool = False):
-    """Run LoopPresence over the scene; the background it is given is the empty road (or empty's first frame)
-    under the same light (or bg_light(t): the background follows the light slowly); stabilised: the camera's
+          stabilised: bool = False):
+    """Run LoopPresence over the scene; the background it is given is the empty road under the same light (or bg_light(t): the background follows the light slowly); stabilised: the camera's
     shake is known (the stabiliser's offset), else it is taken for none."""
     site = make_site()
     pres = LoopPresence(site, SiteZones(site))
-    empty = empty or Road(seed=3)
+    empty = Road(seed=3).render(0.0)
     bg_light = bg_light or light
     out = []
     for k in range(int(seconds * FPS)):
         t = k / FPS
         img = np.clip(scene.render(t, shake(t)) * light(t), 0, 255).astype(np.uint8)
-        bg = np.clip(empty.render(0.0) * bg_light(t), 0, 255).astype(np.uint8)
+        bg = np.clip(empty * bg_light(t), 0, 255).astype(np.uint8)
         pres.step(t, img, bg, shake(t) if stabilised else (0.0, 0.0), feats(t))
         out.append((t, pres.sights["L1"].standing))
     return out
@@ -166,7 +165,8 @@ def test_no_standing_call_without_a_vehicle_standing(case, monkeypatch):
     if case == "nobody came":
         scene.add_vehicle(-1.75, 29.0, 4.5, 0.0)  # there from the start, never moving, shown from 40 s
         original = scene.render
-        scene.render = lambda t, sh=(0.0, 0.0): original(t, sh) if t >= 40.0 else passing()[0].render(t, sh)
+        before = passing()[0]
+        scene.render = lambda t, sh=(0.0, 0.0): original(t, sh) if t >= 40.0 else before.render(t, sh)
         out = watch(scene, 60.0, feats)
     elif case == "light":
         out = watch(scene, 30.0, feats, light=lambda t: 1.0 - 0.33 * min(max(t - 10.0, 0.0) / 4.0, 1.0))
