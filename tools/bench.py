@@ -31,10 +31,15 @@ def scene_dir(preset: str, size: str, seconds: float, seed: int) -> Path:
     w, h = SIZES[size]
     d = Path(tempfile.gettempdir()) / "roadwatch-bench" / f"{preset}-s{seed}-{size}-{seconds:g}s"
     if not (d / "video.mp4").is_file() or not (d / "truth" / "meta.json").is_file():
-        from tools.simulate import render_scenario
-
         click.echo(f"rendering {preset} {size} {seconds:g} s (once, cached in {d}) ...", err=True)
-        render_scenario(preset, seed, seconds, d, width=w, height=h, fps=25.0)
+        # in a process of its own: the renderer's memory is not the pipeline's peak RSS
+        code = ("import sys; from pathlib import Path; from tools.simulate import render_scenario; "
+                "render_scenario(sys.argv[1], int(sys.argv[2]), float(sys.argv[3]), Path(sys.argv[4]), "
+                "width=int(sys.argv[5]), height=int(sys.argv[6]), fps=25.0)")
+        r = subprocess.run([sys.executable, "-c", code, preset, str(seed), repr(seconds), str(d), str(w), str(h)],
+                           capture_output=True, text=True)
+        if r.returncode != 0:
+            raise click.ClickException(f"rendering {preset} {size} failed: {r.stderr.strip()[-500:]}")
     return d
 
 
