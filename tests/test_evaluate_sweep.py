@@ -38,7 +38,16 @@ def test_sweep_simulates_replays_and_compares_with_the_truth(tmp_path):
     scene = work / "free-flow-s11"
     assert (scene / "video.mp4").exists() and (scene / "a.sqlite").exists()
     assert "Lane counts (whole scenes) within 3 %" in r.stdout and "speed" in r.stdout
-    rows = json.loads(report.read_text())["scenes"]
+    rep = json.loads(report.read_text())
+    rows = rep["scenes"]
+    # extra and missed crossings by likely cause: as many as the scene's lanes hold
+    causes = rep["causes"]["free-flow-s11"]
+    assert rep["causes_total"] == causes and "by likely cause (1 scenes)" in r.stdout
+    x = subprocess.run([sys.executable, "-m", "tools.cli", "evaluate", "--truth", str(scene / "truth"), "--results",
+                        str(scene / "a.sqlite"), "--crossings"], capture_output=True, text=True, timeout=120)
+    assert x.returncode == 0, x.stderr[-2000:]
+    assert x.stdout.count("  extra  lane") == sum(causes["extra"].values())
+    assert x.stdout.count("  missed lane") == sum(causes["missed"].values())
     # each lane's true count is the simulator's own, read here from its aggregates
     truth = Counter()
     with open(scene / "truth" / "aggregates.csv") as f:

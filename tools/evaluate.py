@@ -238,20 +238,21 @@ def compare_with_counts(counts: dict, crossings: list[dict], tolerance_frames: i
 def truth_crossings(vehicles_path: str | Path, lines: dict[int, float]) -> list[dict]:
     """The simulator's crossings of each lane's count line (lane -> Y in metres): when a vehicle's front
     passes it while in that lane, with its class, visible share and speed then."""
-    tracks: dict[str, list[tuple[float, int, float, str, float, float]]] = {}
+    tracks: dict[str, list[tuple[float, int, float, str, float, float, float]]] = {}
     with open(vehicles_path, newline="") as f:
         for r in csv.DictReader(f):
             tracks.setdefault(r["vehicle_id"], []).append(
                 (float(r["t"]), int(r["lane"]), float(r["y_front_m"]), r["class"], float(r["visible_frac"]),
-                 float(r["speed_mps"])))
+                 float(r["speed_mps"]), float(r["length_m"])))
     out = []
     for vid, rows in tracks.items():
         rows.sort()
-        for (t0, lane, y0, cls, vis, v), (t1, _, y1, _, _, _) in zip(rows, rows[1:]):
+        for (t0, lane, y0, cls, vis, v, length), (t1, _, y1, *_) in zip(rows, rows[1:]):
             y = lines.get(lane)
             if y is not None and y1 != y and (y0 - y) * (y1 - y) <= 0:  # a sample on the line: the next pair
                 out.append({"lane": lane, "t": t0 + (y - y0) / (y1 - y0) * (t1 - t0), "vehicle_id": vid,
-                            "class": cls, "visible": vis, "speed_kmh": 3.6 * v})
+                            "class": cls, "visible": vis, "speed_kmh": 3.6 * v, "length_m": length,
+                            "sign": 1 if y1 > y0 else -1})
     return sorted(out, key=lambda c: c["t"])
 
 
@@ -268,21 +269,83 @@ def compare_crossings_with_truth(truth: dict, crossings: list[dict], tolerance_s
     return compare_with_counts(counts, crossings, int(round(tolerance_s * fps)), fps=fps)
 
 
+# What an extra or missed crossing against the simulator's truth most likely is (crossing_error_causes). The
+# simulator numbers its lanes across the road, so lanes of one direction whose ids differ by one are neighbours.
+WRONG_LANE_S = 0.6  # an extra and a missed crossing this close in neighbouring lanes: one vehicle, wrong lane
+PART_BEHIND_S = 1.2  # an extra this soon after a big vehicle's front crossed in its lane: a part of it
+BESIDE_S = 1.0  # an extra this close to a big vehicle's crossing in the next lane: its part (roof, side, shadow)
+BIG_CLASSES = ("van", "truck", "bus", "artic")
+OCCLUDED_SHARE = 0.5  # a missed vehicle less visible than this at the line was hidden there
+EXTRA_CAUSES = ("wrong lane", "part of a big vehicle", "beside a big vehicle", "unexplained")
+MISSED_CAUSES = ("wrong lane", "occluded at the line", "seen at the line")
+
+
+def crossing_error_causes(cmp: CountComparison) -> tuple[list[str], list[str]]:
+    """The likely cause of each extra and each missed crossing of a comparison with the simulator's truth
+    (in the order of cmp.extra and cmp.missed). An extra paired with a miss in the next lane of its direction
+    (the truth's crossings give each lane's) is a vehicle counted in the wrong lane; else it is a part of a big
+    vehicle (van, truck, bus, artic) whose front crossed just before in its lane, or of one beside it in the
+    next lane (a roof, flank or shadow seen there), or unexplained. A miss not paired so was occluded at the
+    line or seen there."""
+    truth = [h for h, _ in cmp.matches] + cmp.missed
+    votes: dict[int, int] = {}
+    for h in truth:
+        votes[int(h["lane"])] = votes.get(int(h["lane"]), 0) + int(h.get("sign", 1))
+    sign = {lane: 1 if v >= 0 else -1 for lane, v in votes.items()}
+
+    def next_to(a: int, b: int) -> bool:
+        return abs(a - b) == 1 and sign.get(a, 1) == sign.get(b, 1)
+
+    paired: set[int] = set()
+    extra_causes = []
+    for c in cmp.extra:
+        t, lane = float(c["t"]), int(c["lane"])
+        swap = sorted((abs(h["t"] - t), i) for i, h in enumerate(cmp.missed)
+                      if i not in paired and next_to(int(h["lane"]), lane) and abs(h["t"] - t) <= WRONG_LANE_S)
+        if swap:
+            paired.add(swap[0][1])
+            extra_causes.append("wrong lane")
+        elif any(int(h["lane"]) == lane and h["class"] in BIG_CLASSES and 0.0 <= t - h["t"] <= PART_BEHIND_S
+                 for h in truth):
+            extra_causes.append("part of a big vehicle")
+        elif any(next_to(int(h["lane"]), lane) and h["class"] in BIG_CLASSES and abs(t - h["t"]) <= BESIDE_S
+                 for h in truth):
+            extra_causes.append("beside a big vehicle")
+        else:
+            extra_causes.append("unexplained")
+    missed_causes = ["wrong lane" if i in paired else
+                     "occluded at the line" if h["visible"] < OCCLUDED_SHARE else "seen at the line"
+                     for i, h in enumerate(cmp.missed)]
+    return extra_causes, missed_causes
+
+
+def cause_counts(cmp: CountComparison) -> dict[str, dict[str, int]]:
+    """How many extra and missed crossings each cause of crossing_error_causes explains."""
+    extra, missed = crossing_error_causes(cmp)
+    return {"extra": {k: extra.count(k) for k in EXTRA_CAUSES}, "missed": {k: missed.count(k) for k in MISSED_CAUSES}}
+
+
+def format_causes(counts: dict[str, dict[str, int]]) -> str:
+    return "\n".join(f"  {kind:<6} " + ", ".join(f"{k} {n}" for k, n in counts[kind].items())
+                     for kind in ("extra", "missed"))
+
+
 def format_crossing_lists(cmp: CountComparison, near_s: float = 1.0) -> str:
     """Each extra crossing with the truth's crossings of any lane within near_s (what it may be a part
-    or shadow of), then each missed vehicle with its class and visible share."""
+    or shadow of), then each missed vehicle with its class and visible share; each with its likely cause."""
     ref = [h for h, _ in cmp.matches] + cmp.missed
+    extra_causes, missed_causes = crossing_error_causes(cmp)
     lines = []
-    for c in sorted(cmp.extra, key=lambda c: float(c["t"])):
+    for c, cause in sorted(zip(cmp.extra, extra_causes), key=lambda ec: float(ec[0]["t"])):
         t = float(c["t"])
         near = sorted((h for h in ref if abs(h["t"] - t) <= near_s), key=lambda h: abs(h["t"] - t))
         beside = ", ".join(f"lane {h['lane']} {h['class']} {h['vehicle_id']} ({h['t'] - t:+.2f} s)" for h in near)
         length = f", {float(c['length_m']):.1f} m" if c.get("length_m") is not None else ""
         lines.append(f"  extra  lane {c['lane']} t {t:8.2f} s  vehicle {c.get('vehicle_id')}{length}"
-                     f"  truth near: {beside or 'none'}")
-    for h in sorted(cmp.missed, key=lambda h: h["t"]):
+                     f"  [{cause}]  truth near: {beside or 'none'}")
+    for h, cause in sorted(zip(cmp.missed, missed_causes), key=lambda hc: hc[0]["t"]):
         lines.append(f"  missed lane {h['lane']} t {h['t']:8.2f} s  {h['class']} {h['vehicle_id']}, "
-                     f"{100 * h['visible']:.0f} % visible")
+                     f"{100 * h['visible']:.0f} % visible  [{cause}]")
     return "\n".join(lines)
 
 
@@ -392,6 +455,8 @@ def evaluate(results_path: str, truth_dir: str | None, counts_path: str | None, 
                 click.echo(f"\nCount-line crossings vs the truth's (match = same lane within {window:g} s):")
                 click.echo(format_count_report(xc, lists=False, ref="truth"))
                 click.echo(format_crossing_lists(xc))
+                click.echo("Likely causes:")
+                click.echo(format_causes(cause_counts(xc)))
                 click.echo(f"\nSpot speeds at the count line (matched vehicles at {SPOT_MIN_KMH:.0f} km/h or more):")
                 click.echo(format_spot_speeds(spot_speed_errors(xc)))
             from tools import plots

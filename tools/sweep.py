@@ -17,8 +17,9 @@ from pathlib import Path
 import click
 import numpy as np
 
-from tools.evaluate import (TABLE1_BANDS, EvaluateError, TruthComparison, compare_with_truth, load_results,
-                            load_truth, period_errors, table1)
+from tools.evaluate import (EXTRA_CAUSES, MISSED_CAUSES, TABLE1_BANDS, EvaluateError, TruthComparison, cause_counts,
+                            compare_crossings_with_truth, compare_with_truth, format_causes, load_results, load_truth,
+                            period_errors, table1)
 from tools.simulate.presets import PRESETS
 
 TARGET_PRESETS = ("free-flow", "dense", "shockwave", "long-shadows", "night", "rain", "wind-shake",
@@ -157,6 +158,7 @@ def sweep(presets: str, seeds: str, seconds: float, work: Path, tag: str, no_rep
                 futures[sc.name].result()
                 click.echo(f"replayed {sc.name}", err=True)
     rows = []
+    causes: dict[str, dict] = {}
     for sc in scenes:
         try:
             truth, results = load_truth(sc.dir / "truth"), load_results(sc.dir / f"{tag}.sqlite")
@@ -165,8 +167,16 @@ def sweep(presets: str, seeds: str, seconds: float, work: Path, tag: str, no_rep
         whole = compare_with_truth(truth, results, include_partial=True)
         periods = compare_with_truth(truth, results, include_partial=partial)
         rows += _lane_rows(sc.name, whole, periods)
+        if results["crossings"]:
+            causes[sc.name] = cause_counts(compare_crossings_with_truth(truth, results["crossings"]))
     summary = summarise(rows)
     click.echo(format_sweep(rows, summary, complete_only=not partial))
+    total = {kind: {k: sum(c[kind][k] for c in causes.values()) for k in names}
+             for kind, names in (("extra", EXTRA_CAUSES), ("missed", MISSED_CAUSES))}
+    if causes:
+        click.echo(f"Count-line crossings against the truth's, extra and missed by likely cause "
+                   f"({len(causes)} scenes):")
+        click.echo(format_causes(total))
     if json_out:
-        json_out.write_text(json.dumps({"tag": tag, "scenes": rows, "summary": summary}, indent=1,
-                                       default=lambda o: str(o)))
+        json_out.write_text(json.dumps({"tag": tag, "scenes": rows, "summary": summary, "causes": causes,
+                                        "causes_total": total}, indent=1, default=lambda o: str(o)))
