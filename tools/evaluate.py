@@ -272,7 +272,9 @@ def compare_crossings_with_truth(truth: dict, crossings: list[dict], tolerance_s
 # What an extra or missed crossing against the simulator's truth most likely is (crossing_error_causes). The
 # simulator numbers its lanes across the road, so lanes of one direction whose ids differ by one are neighbours.
 WRONG_LANE_S = 0.6  # an extra and a missed crossing this close in neighbouring lanes: one vehicle, wrong lane
-PART_BEHIND_S = 1.2  # an extra this soon after a big vehicle's front crossed in its lane: a part of it
+# an extra this close in time to a big vehicle's crossing in its lane is a part of it: its rear or trailer just
+# after it, or (receding, seen from behind) its top projected ahead of it just before it
+PART_S = 1.2
 BESIDE_S = 1.0  # an extra this close to a big vehicle's crossing in the next lane: its part (roof, side, shadow)
 BIG_CLASSES = ("van", "truck", "bus", "artic")
 OCCLUDED_SHARE = 0.5  # a missed vehicle less visible than this at the line was hidden there
@@ -284,8 +286,8 @@ def crossing_error_causes(cmp: CountComparison) -> tuple[list[str], list[str]]:
     """The likely cause of each extra and each missed crossing of a comparison with the simulator's truth
     (in the order of cmp.extra and cmp.missed). An extra paired with a miss in the next lane of its direction
     (the truth's crossings give each lane's) is a vehicle counted in the wrong lane; else it is a part of a big
-    vehicle (van, truck, bus, artic) whose front crossed just before in its lane, or of one beside it in the
-    next lane (a roof, flank or shadow seen there), or unexplained. A miss not paired so was occluded at the
+    vehicle (van, truck, bus, artic) that crossed about then in its lane, or of one beside it in the next lane
+    (a roof, flank or shadow seen there), or unexplained. A miss not paired so was occluded at the
     line or seen there."""
     truth = [h for h, _ in cmp.matches] + cmp.missed
     votes: dict[int, int] = {}
@@ -305,8 +307,7 @@ def crossing_error_causes(cmp: CountComparison) -> tuple[list[str], list[str]]:
         if swap:
             paired.add(swap[0][1])
             extra_causes.append("wrong lane")
-        elif any(int(h["lane"]) == lane and h["class"] in BIG_CLASSES and 0.0 <= t - h["t"] <= PART_BEHIND_S
-                 for h in truth):
+        elif any(int(h["lane"]) == lane and h["class"] in BIG_CLASSES and abs(t - h["t"]) <= PART_S for h in truth):
             extra_causes.append("part of a big vehicle")
         elif any(next_to(int(h["lane"]), lane) and h["class"] in BIG_CLASSES and abs(t - h["t"]) <= BESIDE_S
                  for h in truth):
