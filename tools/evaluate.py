@@ -238,21 +238,20 @@ def compare_with_counts(counts: dict, crossings: list[dict], tolerance_frames: i
 def truth_crossings(vehicles_path: str | Path, lines: dict[int, float]) -> list[dict]:
     """The simulator's crossings of each lane's count line (lane -> Y in metres): when a vehicle's front
     passes it while in that lane, with its class, visible share and speed then."""
-    tracks: dict[str, list[tuple[float, int, float, str, float, float, float]]] = {}
+    tracks: dict[str, list[tuple[float, int, float, str, float, float]]] = {}
     with open(vehicles_path, newline="") as f:
         for r in csv.DictReader(f):
             tracks.setdefault(r["vehicle_id"], []).append(
                 (float(r["t"]), int(r["lane"]), float(r["y_front_m"]), r["class"], float(r["visible_frac"]),
-                 float(r["speed_mps"]), float(r["length_m"])))
+                 float(r["speed_mps"])))
     out = []
     for vid, rows in tracks.items():
         rows.sort()
-        for (t0, lane, y0, cls, vis, v, length), (t1, _, y1, *_) in zip(rows, rows[1:]):
+        for (t0, lane, y0, cls, vis, v), (t1, _, y1, *_) in zip(rows, rows[1:]):
             y = lines.get(lane)
             if y is not None and y1 != y and (y0 - y) * (y1 - y) <= 0:  # a sample on the line: the next pair
                 out.append({"lane": lane, "t": t0 + (y - y0) / (y1 - y0) * (t1 - t0), "vehicle_id": vid,
-                            "class": cls, "visible": vis, "speed_kmh": 3.6 * v, "length_m": length,
-                            "sign": 1 if y1 > y0 else -1})
+                            "class": cls, "visible": vis, "speed_kmh": 3.6 * v, "sign": 1 if y1 > y0 else -1})
     return sorted(out, key=lambda c: c["t"])
 
 
@@ -320,9 +319,9 @@ def crossing_error_causes(cmp: CountComparison) -> tuple[list[str], list[str]]:
     return extra_causes, missed_causes
 
 
-def cause_counts(cmp: CountComparison) -> dict[str, dict[str, int]]:
-    """How many extra and missed crossings each cause of crossing_error_causes explains."""
-    extra, missed = crossing_error_causes(cmp)
+def cause_counts(cmp: CountComparison, causes: tuple[list[str], list[str]] | None = None) -> dict[str, dict[str, int]]:
+    """How many extra and missed crossings each cause of crossing_error_causes (or the causes given) explains."""
+    extra, missed = causes or crossing_error_causes(cmp)
     return {"extra": {k: extra.count(k) for k in EXTRA_CAUSES}, "missed": {k: missed.count(k) for k in MISSED_CAUSES}}
 
 
@@ -331,11 +330,13 @@ def format_causes(counts: dict[str, dict[str, int]]) -> str:
                      for kind in ("extra", "missed"))
 
 
-def format_crossing_lists(cmp: CountComparison, near_s: float = 1.0) -> str:
+def format_crossing_lists(cmp: CountComparison, near_s: float = 1.0,
+                          causes: tuple[list[str], list[str]] | None = None) -> str:
     """Each extra crossing with the truth's crossings of any lane within near_s (what it may be a part
-    or shadow of), then each missed vehicle with its class and visible share; each with its likely cause."""
+    or shadow of), then each missed vehicle with its class and visible share; each with its likely cause
+    (crossing_error_causes, unless given)."""
     ref = [h for h, _ in cmp.matches] + cmp.missed
-    extra_causes, missed_causes = crossing_error_causes(cmp)
+    extra_causes, missed_causes = causes or crossing_error_causes(cmp)
     lines = []
     for c, cause in sorted(zip(cmp.extra, extra_causes), key=lambda ec: float(ec[0]["t"])):
         t = float(c["t"])
@@ -455,9 +456,10 @@ def evaluate(results_path: str, truth_dir: str | None, counts_path: str | None, 
                 xc = compare_crossings_with_truth(truth, results["crossings"], window)
                 click.echo(f"\nCount-line crossings vs the truth's (match = same lane within {window:g} s):")
                 click.echo(format_count_report(xc, lists=False, ref="truth"))
-                click.echo(format_crossing_lists(xc))
+                causes = crossing_error_causes(xc)
+                click.echo(format_crossing_lists(xc, causes=causes))
                 click.echo("Likely causes:")
-                click.echo(format_causes(cause_counts(xc)))
+                click.echo(format_causes(cause_counts(xc, causes)))
                 click.echo(f"\nSpot speeds at the count line (matched vehicles at {SPOT_MIN_KMH:.0f} km/h or more):")
                 click.echo(format_spot_speeds(spot_speed_errors(xc)))
             from tools import plots
