@@ -32,12 +32,10 @@ def scene_dir(preset: str, size: str, seconds: float, seed: int) -> Path:
     d = Path(tempfile.gettempdir()) / "roadwatch-bench" / f"{preset}-s{seed}-{size}-{seconds:g}s"
     if not (d / "video.mp4").is_file() or not (d / "truth" / "meta.json").is_file():
         click.echo(f"rendering {preset} {size} {seconds:g} s (once, cached in {d}) ...", err=True)
-        # in a process of its own: the renderer's memory is not the pipeline's peak RSS
-        code = ("import sys; from pathlib import Path; from tools.simulate import render_scenario; "
-                "render_scenario(sys.argv[1], int(sys.argv[2]), float(sys.argv[3]), Path(sys.argv[4]), "
-                "width=int(sys.argv[5]), height=int(sys.argv[6]), fps=25.0)")
-        r = subprocess.run([sys.executable, "-c", code, preset, str(seed), repr(seconds), str(d), str(w), str(h)],
-                           capture_output=True, text=True)
+        # by `roadwatch simulate`, in a process of its own: the renderer's memory is not the pipeline's peak RSS
+        r = subprocess.run([sys.executable, "-m", "tools.cli", "simulate", "--preset", preset, "--seed", str(seed),
+                            "--seconds", repr(seconds), "--out", str(d), "--width", str(w), "--height", str(h),
+                            "--fps", "25", "--quiet"], capture_output=True, text=True)
         if r.returncode != 0:
             raise click.ClickException(f"rendering {preset} {size} failed: {r.stderr.strip()[-500:]}")
     return d
