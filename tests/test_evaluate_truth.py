@@ -53,10 +53,11 @@ def test_replay_and_evaluate_rendered_scene(scene, tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     fig7, fig6, t1 = tmp_path / "fig7.png", tmp_path / "fig6.png", tmp_path / "t1.png"
     r = subprocess.run([sys.executable, "-m", "tools.cli", "evaluate", "--truth", str(scene.truth_dir), "--results",
-                        str(db), "--plot", str(fig7), "--time-space", str(fig6), "--errors-png", str(t1)],
-                       capture_output=True, text=True, timeout=300)
+                        str(db), "--plot", str(fig7), "--time-space", str(fig6), "--errors-png", str(t1),
+                        "--edie-parts", "--config", str(scene.site)], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     assert "<=2.5%" in r.stdout and "Loop occupancy error" in r.stdout
+    assert "Edie distance and time by the truth vehicle" in r.stdout and "own tracks' distance" in r.stdout
     for png in (fig7, fig6, t1):
         assert png.stat().st_size > 5000
     cmp = compare_with_truth(load_truth(scene.truth_dir), load_results(db))

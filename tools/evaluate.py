@@ -427,13 +427,17 @@ def format_count_report(cmp: CountComparison, lists: bool = True, ref: str = "ha
               help="truth: seconds within which a crossing matches the truth's (a crawl's near end crosses late)")
 @click.option("--frames", "frame_range", default=None, metavar="FIRST:LAST",
               help="hand counts: compare only crossings in this frame range (e.g. a partial replay)")
+@click.option("--edie-parts", is_flag=True,
+              help="truth: split each lane's Edie distance and time by the truth vehicle under each measured track")
+@click.option("--config", "site_path", type=click.Path(dir_okay=False), default=None,
+              help="site config with the lanes' Edie regions, for --edie-parts [default: site.toml beside --truth]")
 @click.option("--plot", "plot_png", type=click.Path(dir_okay=False), default=None, help="scatter plot PNG (Fig. 7)")
 @click.option("--errors-png", type=click.Path(dir_okay=False), default=None, help="Table-1 error distribution PNG")
 @click.option("--time-space", "ts_png", type=click.Path(dir_okay=False), default=None,
               help="time-space diagram PNG (Fig. 6)")
 def evaluate(results_path: str, truth_dir: str | None, counts_path: str | None, tolerance: int, complete_only: bool,
-             list_crossings: bool, window: float, frame_range: str | None, plot_png: str | None, errors_png: str | None,
-             ts_png: str | None) -> None:
+             list_crossings: bool, window: float, frame_range: str | None, edie_parts: bool, site_path: str | None,
+             plot_png: str | None, errors_png: str | None, ts_png: str | None) -> None:
     """Compare replay results with simulator truth (--truth) or a hand count (--counts)."""
     if (truth_dir is None) == (counts_path is None):
         raise click.UsageError("give exactly one of --truth DIR or --counts counts.json")
@@ -462,6 +466,8 @@ def evaluate(results_path: str, truth_dir: str | None, counts_path: str | None, 
                 click.echo(format_causes(cause_counts(xc, causes)))
                 click.echo(f"\nSpot speeds at the count line (matched vehicles at {SPOT_MIN_KMH:.0f} km/h or more):")
                 click.echo(format_spot_speeds(spot_speed_errors(xc)))
+            if edie_parts:
+                click.echo(_edie_parts_report(truth, results, site_path or Path(truth_dir).parent / "site.toml"))
             from tools import plots
 
             if plot_png:
@@ -501,7 +507,26 @@ def evaluate(results_path: str, truth_dir: str | None, counts_path: str | None, 
                 for row in occ:
                     click.echo(f"  lane {row['lane']}: result {row['result_pct']:.1f} % ({row['result_runs']} actuations), "
                                f"hand {row['hand_pct']:.1f} % ({row['hand_runs']} runs)")
-            if plot_png or ts_png or errors_png:
-                click.echo("(plots are made for --truth comparisons only)", err=True)
+            if plot_png or ts_png or errors_png or edie_parts:
+                click.echo("(plots and --edie-parts are made for --truth comparisons only)", err=True)
     except EvaluateError as e:
         raise click.ClickException(str(e)) from None
+
+
+def _edie_parts_report(truth: dict, results: dict, site_path: str | Path) -> str:
+    from appliance.config import ConfigError, load_site
+    from tools.edie_parts import edie_parts, format_edie_parts
+
+    if not Path(site_path).exists():
+        raise EvaluateError(f"{site_path}: no such site config (--edie-parts takes the lanes' regions from it: "
+                            f"give it with --config)")
+    try:
+        site = load_site(str(site_path))
+    except ConfigError as e:
+        raise EvaluateError(str(e)) from None
+    if not any(v.get("trajectory") for v in results["vehicles"]):
+        raise EvaluateError("the results hold no vehicle trajectories (write them with roadwatch replay --vehicles)")
+    regions = {lane.id: (float(lane.region_y_m[0]), float(lane.region_y_m[1])) for lane in site.lanes}
+    parts = edie_parts(truth["vehicles_path"], results["vehicles"], regions)
+    return ("\nEdie distance and time by the truth vehicle under each measured track (whole scene; own = the "
+            "longest track on a vehicle):\n" + format_edie_parts(parts))
