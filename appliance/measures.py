@@ -158,6 +158,10 @@ class TrafficMeasures:
         self.merged_crossings = 0  # crossings taken as fragments of the vehicle just before
         self.partial_periods: set[float] = set()
         self.keep_trajectories = bool(site.store.trajectories)
+        # every Edie segment added (+1) or taken back (-1), as (vehicle, lane, w0, w1, y0, y1, sign, x across the
+        # road, nan for those taken back), when a list (replays: to split the measured distance and time by what
+        # lay under each track)
+        self.edie_log: list[tuple] | None = None
         self.now_wall: float | None = None
         self.started_wall: float | None = None
         self.gaps: list[tuple[float, float]] = []  # unobserved wall intervals (service restarts)
@@ -206,15 +210,14 @@ class TrafficMeasures:
                 k += 1
                 seg = self._advance(s, raw, offset, out)
                 if seg is not None:
-                    segs.append(self._edie_segment(self.tracks[v.id], seg))
+                    segs.append((v.id, s.x, self._edie_segment(self.tracks[v.id], seg)))
             tr = self.tracks[v.id]
             seg = self._finish(v, offset, out) if v.finished else None
             if seg is not None:
-                segs.append(self._edie_segment(tr, seg))
-        segs = [sg for sg in segs if sg is not None]  # a family member's segment may be covered already
+                segs.append((v.id, v.x, self._edie_segment(tr, seg)))
+        segs = [sg for sg in segs if sg[2] is not None]  # a family member's segment may be covered already
         if segs:
-            lanes, w0, w1, y0, y1 = (np.array(c) for c in zip(*segs))
-            self.edie.add(lanes.astype(np.int64), w0, w1, y0, y1)
+            self._edie_add(*(list(c) for c in zip(*segs)))
         for vid in [vid for vid, tr in self.tracks.items() if vid not in seen and t - tr.prev[0] > LOST_AFTER_S]:
             tr = self.tracks.pop(vid)
             self._ended(vid, tr, wall)
@@ -325,7 +328,7 @@ class TrafficMeasures:
         out.crossings.append(cr)
         seg = self._late_backfill(tr, lane_c, tc, offset)
         if seg is not None:
-            self.edie.add(np.array([seg[0]]), *(np.array([c]) for c in seg[1:]))
+            self._edie_add([v.id], [v.x], [seg])
 
     def _late_backfill(self, tr: _Track, lane: int, tc: float, offset: float) -> tuple | None:
         """The Edie segment from a just-counted vehicle's region entry to its first point, when it entered the
@@ -368,18 +371,25 @@ class TrafficMeasures:
             fam = self.families[fam_id] = _Family(other.covered_from, other.covered_until)
             other.family = fam_id
         tr.family = fam_id
-        self._take_back(tr, fam.start, fam.until)
+        self._take_back(vid, tr, fam.start, fam.until)
         fam.start = min(fam.start, tr.covered_from)
         fam.until = max(fam.until, tr.covered_until)
 
-    def _take_back(self, tr: _Track, since: float, until: float) -> None:
+    def _take_back(self, vid: int, tr: _Track, since: float, until: float) -> None:
         """Remove the parts of a vehicle's Edie segments between wall times ``since`` and ``until`` (the
         accumulator leaves periods already taken alone); it keeps no segments after this."""
         back = [c for c in (_cut(sg, since, until) for sg in tr.segs) if c is not None]
         if back:
-            lanes, w0, w1, y0, y1 = (np.array(c) for c in zip(*back))
-            self.edie.add(lanes.astype(np.int64), w0, w1, y0, y1, sign=-1.0)
+            self._edie_add([vid] * len(back), [np.nan] * len(back), back, sign=-1.0)
         tr.segs.clear()
+
+    def _edie_add(self, vids: list[int], xs: list[float], segs: list[tuple], sign: float = 1.0) -> None:
+        """Add Edie segments (lane, w0, w1, y0, y1) of these vehicles at these places across the road (sign -1:
+        take them back), logged."""
+        lanes, w0, w1, y0, y1 = (np.array(c) for c in zip(*segs))
+        self.edie.add(lanes.astype(np.int64), w0, w1, y0, y1, sign=sign)
+        if self.edie_log is not None:
+            self.edie_log += [(vid, *sg, sign, x) for vid, x, sg in zip(vids, xs, segs)]
 
     def _edie_segment(self, tr: _Track, seg: tuple) -> tuple | None:
         """A vehicle's Edie segment as counted: a family member's only for the time its family has not

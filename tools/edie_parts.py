@@ -1,22 +1,26 @@
-"""Where a lane's Edie distance and time come from, against the simulator's truth: each measured vehicle's
-trajectory steps in the lane's region, split by the truth vehicle under them (its own track, a duplicate of
-it, a vehicle of another lane, or none), and the own tracks' distance against their vehicles' over the same
-steps."""
+"""Where a lane's Edie distance and time come from, against the simulator's truth: the Edie segments the
+measures counted (and took back) in the lane's region, split by the truth vehicle under them (its own track,
+a duplicate of it at the same time, a vehicle of another lane, or none), and the own tracks' distance against
+their vehicles' over the same steps."""
 
 from __future__ import annotations
 
 import csv
-import json
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from appliance.edie import clip_segments
+from tools.simulate.vehicles import CLASS_DIMS
+
 # A measured point is on a truth vehicle when it lies within this much of its front..rear span along the road
 # (the near end tracked is a bumper, a bonnet or a roofline, projected a little beyond the body)
 ON_VEHICLE_M = 2.0
 IN_VIEW_SHARE = 0.95  # a truth vehicle this much visible is in view; less, partly hidden
+# ... or above it: on the road-plane projection of its body up to its height (its roof seen further away)
+MAX_HEIGHT_M = 4.5  # a class the simulator does not know is at most this tall
 PARTS = ("own", "duplicate", "other lane", "no vehicle")
 OTHER_LANE = -1  # owner of a step on no vehicle of its lane but on one of another lane
 
@@ -30,6 +34,7 @@ class LaneParts:
     # own tracks' distance against their vehicles' over the same steps: view -> [measured m, truth m]
     own_vs_truth: dict[str, list[float]] = field(default_factory=lambda: {"in view": [0.0, 0.0],
                                                                           "partly hidden": [0.0, 0.0]})
+    above: list[float] = field(default_factory=lambda: [0.0, 0.0])  # own steps led by a part above the road
 
     @property
     def measured(self) -> tuple[float, float]:
@@ -37,107 +42,134 @@ class LaneParts:
 
 
 def _truth_rows(vehicles_csv: str | Path) -> tuple[np.ndarray, dict[int, np.ndarray]]:
-    """(sorted frame times, per frame index an array of rows: vehicle id, lane, front, rear, visible, x)."""
+    """(sorted frame times, per frame index an array of rows: vehicle id, lane, front, rear, visible, x,
+    height (its class's tallest))."""
     rows = []
     with open(vehicles_csv, newline="") as f:
         for r in csv.DictReader(f):
             a, b = float(r["y_front_m"]), float(r["y_rear_m"])
+            h = CLASS_DIMS[r["class"]][2][1] if r["class"] in CLASS_DIMS else MAX_HEIGHT_M
             rows.append((float(r["t"]), int(r["vehicle_id"]), int(r["lane"]), a, b, float(r["visible_frac"]),
-                         float(r["x_m"])))
-    arr = np.array(rows, np.float64).reshape(-1, 7)
+                         float(r["x_m"]), h))
+    arr = np.array(rows, np.float64).reshape(-1, 8)
     times, idx = np.unique(arr[:, 0], return_inverse=True)
     order = np.argsort(idx, kind="stable")
     bounds = np.searchsorted(idx[order], np.arange(len(times) + 1))
     return times, {i: arr[order[bounds[i]:bounds[i + 1]], 1:] for i in range(len(times))}
 
 
-def edie_parts(vehicles_csv: str | Path, measured: list[dict], regions: dict[int, tuple[float, float]]
-               ) -> list[LaneParts]:
+def edie_parts(vehicles_csv: str | Path, segments: list[dict], regions: dict[int, tuple[float, float]],
+               start_wall: float = 0.0, camera: tuple[float, float] | None = None) -> list[LaneParts]:
     """Per lane (regions: lane -> (y0, y1) of its Edie region): the truth's Edie distance and time, and the
-    measured vehicles' (records with lane and trajectory [[t, x, y], ...] in capture time) split by part."""
+    measured Edie segments' (as the measures added and took back: vehicle_id, lane, w0, w1, y0, y1, sign, x;
+    wall times start_wall + capture time) split by part. With the camera (x across the road, height; its foot
+    at y 0) a point may also lie above a vehicle."""
     times, at = _truth_rows(vehicles_csv)
     half_frame = 0.5 * float(np.median(np.diff(times))) if len(times) > 1 else 0.02
     out = {lane: LaneParts(lane) for lane in regions}
     front: dict[int, tuple[float, float]] = {}  # truth vehicle -> (t, y_front) at its previous frame
+    moves = []  # (lane, t0, t1, y0, y1) of each truth vehicle's front between its frames
     for i, t in enumerate(times):
         for vid, lane, a, *_ in at[i]:
             prev = front.get(int(vid))
             front[int(vid)] = (t, a)
-            lp = out.get(int(lane))
-            if prev is None or lp is None:
-                continue
-            y0, y1 = regions[int(lane)]
-            if y0 <= 0.5 * (prev[1] + a) <= y1:
-                lp.truth_d += abs(a - prev[1])
-                lp.truth_t += t - prev[0]
+            if prev is not None and int(lane) in out:
+                moves.append((lane, prev[0], t, prev[1], a))
+    if moves:
+        lanes, t0, t1, y0, y1 = np.array(moves).T
+        ylo, yhi = (np.array([regions[int(ln)][j] for ln in lanes]) for j in (0, 1))
+        ta, tb, dist = clip_segments(t0, t1, y0, y1, ylo, yhi)
+        for lane, lp in out.items():
+            m = lanes == lane
+            lp.truth_d, lp.truth_t = float(dist[m].sum()), float((tb - ta)[m].sum())
 
     def frame(tq: float) -> int | None:
         k = int(np.clip(np.searchsorted(times, tq), 1, len(times) - 1)) if len(times) > 1 else 0
         k = k - 1 if abs(times[k - 1] - tq) < abs(times[k] - tq) else k
         return k if abs(times[k] - tq) <= half_frame else None
 
-    def under(k: int | None, lane: int, y: float, x: float) -> tuple[np.ndarray | None, bool]:
-        """The truth row of lane's vehicle under a point, and whether another lane's vehicle is there."""
+    def under(k: int | None, lane: int, y: float, x: float) -> tuple[np.ndarray | None, bool, bool]:
+        """The truth row of lane's vehicle under a point (or, failing that, below it), whether that is above
+        the vehicle's footprint, and whether another lane's vehicle is there instead."""
         if k is None:
-            return None, False
+            return None, False, False
         rows = at[k]
         lo, hi = np.minimum(rows[:, 2], rows[:, 3]), np.maximum(rows[:, 2], rows[:, 3])
-        along = (lo - ON_VEHICLE_M <= y) & (y <= hi + ON_VEHICLE_M)
-        hit = along & (rows[:, 1] == lane)
-        if hit.any():
-            return rows[np.argmax(hit)], False
-        return None, bool((along & (np.abs(rows[:, 5] - x) <= ON_VEHICLE_M)).any())
+        near_x = np.abs(rows[:, 5] - x) <= ON_VEHICLE_M
+        for above in (False, True):
+            if above:
+                if camera is None:
+                    break
+                cx, ch = camera
+                kmax = ch / np.maximum(ch - rows[:, 6], 0.5)  # its roof's height magnification
+                hi = hi * kmax
+                px = cx + (rows[:, 5] - cx) * kmax
+                near_x = (x >= np.minimum(rows[:, 5], px) - ON_VEHICLE_M) & (x <= np.maximum(rows[:, 5], px)
+                                                                              + ON_VEHICLE_M)
+            along = (lo - ON_VEHICLE_M <= y) & (y <= hi + ON_VEHICLE_M)
+            hit = along & (rows[:, 1] == lane)
+            if hit.any():
+                return rows[np.argmax(hit)], above, False
+            if (along & near_x).any():
+                return None, False, True
+        return None, False, False
 
-    tracks: dict[int, list] = defaultdict(list)  # lane -> [(owner, steps)], steps: (d, dt, truth rows a, b)
-    for rec in measured:
-        traj = rec.get("trajectory")
-        if isinstance(traj, str):
-            traj = json.loads(traj)
-        lane = rec.get("lane")
-        if not traj or lane is None or int(lane) not in regions:
+    # per lane and vehicle its steps: (d, dt, sign, truth row at the start, at the end, end frame)
+    steps: dict[tuple[int, int], list] = defaultdict(list)
+    votes: dict[tuple[int, int], dict] = defaultdict(lambda: defaultdict(float))
+    segments = [sg for sg in segments if int(sg["lane"]) in regions]
+    if not segments:
+        return [out[lane] for lane in sorted(out)]
+    w0s, w1s, y0s, y1s = (np.array([float(sg[k]) for sg in segments]) for k in ("w0", "w1", "y0", "y1"))
+    ylo, yhi = (np.array([regions[int(sg["lane"])][j] for sg in segments]) for j in (0, 1))
+    clipped = zip(*clip_segments(w0s, w1s, y0s, y1s, ylo, yhi))
+    for sg, w0, w1, y0, y1, (ta, tb, d) in zip(segments, w0s, w1s, y0s, y1s, clipped):
+        lane = int(sg["lane"])
+        if tb <= ta:
             continue
-        lane = int(lane)
-        y0, y1 = regions[lane]
-        steps, votes = [], defaultdict(int)
-        for (ta, _, ya), (tb, xb, yb) in zip(traj, traj[1:]):
-            if not y0 <= 0.5 * (ya + yb) <= y1 or tb <= ta:
-                continue
-            ra, _ = under(frame(ta), lane, ya, xb)
-            rb, other = under(frame(tb), lane, yb, xb)
-            votes[int(rb[0]) if rb is not None else OTHER_LANE if other else None] += 1
-            steps.append((abs(yb - ya), tb - ta, ra, rb))
-        if steps:
-            tracks[lane].append((max(votes, key=votes.get), steps))
-    for lane, lst in tracks.items():
+        sign = float(sg.get("sign", 1.0))
+        x = sg.get("x")
+        x = np.nan if x is None or x == "" else float(x)
+        ya, yb = (y0 + (y1 - y0) * (w - w0) / (w1 - w0) for w in (ta, tb))
+        ka, kb = frame(ta - start_wall), frame(tb - start_wall)
+        ra, _, _ = under(ka, lane, ya, x)
+        rb, up, other = under(kb, lane, yb, x)
+        key = (lane, int(sg["vehicle_id"]))
+        steps[key].append((d * sign, (tb - ta) * sign, sign, ra, rb, kb, up))
+        if sign > 0:
+            votes[key][int(rb[0]) if rb is not None else OTHER_LANE if other else None] += tb - ta
+    covered: dict[tuple[int, int], dict] = defaultdict(dict)  # (lane, truth vehicle) -> {frame: measured one}
+    # the longest first: a step of a vehicle's track is its own unless a longer track of that vehicle covered its
+    # frame (a duplicate then: at the same time, not a track found again after a loss)
+    for key in sorted(steps, key=lambda k: -sum(st[1] for st in steps[k])):
+        lane, vid = key
         lp = out[lane]
-        longest: dict[int, float] = {}
-        for owner, steps in lst:
-            if owner is not None and owner != OTHER_LANE:
-                longest[owner] = max(longest.get(owner, 0.0), sum(s[1] for s in steps))
-        own_taken: set[int] = set()
-        for owner, steps in lst:
-            dur = sum(s[1] for s in steps)
+        owner = max(votes[key], key=votes[key].get) if votes[key] else None
+        shares: dict[str, float] = defaultdict(float)
+        for d, dt, sign, ra, rb, kb, up in steps[key]:
             if owner is None:
                 part = "no vehicle"
             elif owner == OTHER_LANE:
                 part = "other lane"
-            elif owner not in own_taken and dur == longest[owner]:
-                part = "own"
-                own_taken.add(owner)
-            else:
+            elif kb is not None and (covered[lane, owner].setdefault(kb, vid) if sign > 0
+                                     else covered[lane, owner].get(kb, vid)) != vid:
                 part = "duplicate"
+            else:
+                part = "own"
             p = lp.parts[part]
-            p[0] += sum(s[0] for s in steps)
-            p[1] += dur
-            p[2] += 1
-            if part != "own":
-                continue
-            for d, _, ra, rb in steps:
-                if ra is None or rb is None or int(ra[0]) != owner or int(rb[0]) != owner:
-                    continue
+            p[0] += d
+            p[1] += dt
+            shares[part] += dt
+            if part == "own" and up:
+                lp.above[0] += d
+                lp.above[1] += dt
+            if part == "own" and sign > 0 and ra is not None and rb is not None \
+                    and int(ra[0]) == owner == int(rb[0]):
                 view = lp.own_vs_truth["in view" if rb[4] >= IN_VIEW_SHARE else "partly hidden"]
                 view[0] += d
                 view[1] += abs(rb[2] - ra[2])
+        if shares:
+            lp.parts[max(shares, key=shares.get)][2] += 1
     return [out[lane] for lane in sorted(out)]
 
 
@@ -158,6 +190,9 @@ def format_edie_parts(lanes: list[LaneParts]) -> str:
                      f"time {_pct(mt, lp.truth_t)})")
         lines.append("    " + "; ".join(f"{name} {n} tracks {d:.0f} m {t:.0f} s {_kmh(d, t)}"
                                         for name, (d, t, n) in lp.parts.items() if n))
+        if lp.above[1] > 0:
+            lines.append(f"    own steps led by a part above the road (not on its vehicle's footprint): {lp.above[0]:.0f} m "
+                         f"{lp.above[1]:.0f} s {_kmh(*lp.above)}")
         lines.append("    own tracks' distance against their vehicles' over the same steps: " + ", ".join(
             f"{name} {_pct(m, tr)} of {tr:.0f} m" for name, (m, tr) in lp.own_vs_truth.items() if tr > 0))
     return "\n".join(lines)

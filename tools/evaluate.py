@@ -64,6 +64,7 @@ def load_results(path: str | Path) -> dict[str, list[dict]]:
             "crossings": read_csv(p.with_name(p.stem + "_crossings.csv")),
             "loop_events": read_csv(p.with_name(p.stem + "_loop_events.csv")),
             "vehicles": read_csv(p.with_name(p.stem + "_vehicles.csv")),
+            "edie_segments": read_csv(p.with_name(p.stem + "_edie_segments.csv")),
         }
     try:
         conn = sqlite3.connect(f"file:{p}?mode=ro", uri=True)
@@ -74,7 +75,7 @@ def load_results(path: str | Path) -> dict[str, list[dict]]:
     if "periods" not in tables:
         raise EvaluateError(f"{p}: has no periods table (not a roadwatch results file)")
     out = {}
-    for name in ("periods", "crossings", "loop_events", "vehicles"):
+    for name in ("periods", "crossings", "loop_events", "vehicles", "edie_segments"):
         out[name] = [dict(r) for r in conn.execute(f"SELECT * FROM {name}")] if name in tables else []
     for r in out["periods"]:
         if isinstance(r.get("class_counts"), str):
@@ -524,9 +525,12 @@ def _edie_parts_report(truth: dict, results: dict, site_path: str | Path) -> str
         site = load_site(str(site_path))
     except ConfigError as e:
         raise EvaluateError(str(e)) from None
-    if not any(v.get("trajectory") for v in results["vehicles"]):
-        raise EvaluateError("the results hold no vehicle trajectories (write them with roadwatch replay --vehicles)")
+    if not results.get("edie_segments"):
+        raise EvaluateError("the results hold no Edie segments (write them with roadwatch replay --vehicles)")
     regions = {lane.id: (float(lane.region_y_m[0]), float(lane.region_y_m[1])) for lane in site.lanes}
-    parts = edie_parts(truth["vehicles_path"], results["vehicles"], regions)
-    return ("\nEdie distance and time by the truth vehicle under each measured track (whole scene; own = the "
-            "longest track on a vehicle):\n" + format_edie_parts(parts))
+    cam = truth["meta"].get("camera") or {}
+    parts = edie_parts(truth["vehicles_path"], results["edie_segments"], regions,
+                       float(truth["meta"].get("start_wall", 0.0)),
+                       (float(cam["x_m"]), float(cam["height_m"])) if "x_m" in cam and "height_m" in cam else None)
+    return ("\nEdie distance and time counted, by the truth vehicle under each measured track (whole scene; own: "
+            "the first track on a vehicle at each moment, the longest first; duplicate: another one then):\n" + format_edie_parts(parts))

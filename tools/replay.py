@@ -36,6 +36,8 @@ class ReplayResult:
     fps: float = 0.0
     truncated: str | None = None  # why reading stopped early, when it did
     seconds: float = 0.0  # processing wall time
+    # the Edie segments added (+1) and taken back (-1), when asked: (vehicle, lane, w0, w1, y0, y1, sign, x)
+    edie_segments: list[tuple] = field(default_factory=list)
 
 
 def parse_start(text: str | None) -> float:
@@ -120,8 +122,10 @@ def replay_video(
     max_frames: int | None = None,
     pipeline_factory: Callable | None = None,
     trajectories: bool = True,
+    edie_log: bool = False,
 ) -> ReplayResult:
-    """Run VisionPipeline + TrafficMeasures over a video; results include the partial last period."""
+    """Run VisionPipeline + TrafficMeasures over a video; results include the partial last period (and with
+    edie_log every Edie segment the measures added or took back)."""
     if pipeline_factory is None:
         from appliance.pipeline import VisionPipeline
 
@@ -133,6 +137,8 @@ def replay_video(
     measures = TrafficMeasures(site)
     measures.keep_trajectories = trajectories  # bounded per vehicle; for time-space diagrams
     res = ReplayResult(fps=frames.fps)
+    if edie_log:
+        measures.edie_log = res.edie_segments
     writer = None
     if snapshots:
         Path(snapshots).mkdir(parents=True, exist_ok=True)
@@ -190,6 +196,7 @@ def replay_video(
 # ------------------------------------------------------------------------------------ output
 
 CROSSING_COLUMNS = ["vehicle_id", "lane", "frame", "t", "wall", "speed_kmh", "length_m", "y"]
+EDIE_COLUMNS = ["vehicle_id", "lane", "w0", "w1", "y0", "y1", "sign", "x"]
 
 
 def write_results(res: ReplayResult, out: str, vehicles: bool) -> list[str]:
@@ -214,6 +221,7 @@ def write_results(res: ReplayResult, out: str, vehicles: bool) -> list[str]:
         dump(p.with_name(p.stem + "_loop_events.csv"), [e.to_dict() for e in res.loop_events])
         if vehicles:
             dump(p.with_name(p.stem + "_vehicles.csv"), [r.to_dict() for r in res.vehicles])
+            dump(p.with_name(p.stem + "_edie_segments.csv"), [dict(zip(EDIE_COLUMNS, sg)) for sg in res.edie_segments])
         return written
     from appliance.store import Store
 
@@ -228,6 +236,11 @@ def write_results(res: ReplayResult, out: str, vehicles: bool) -> list[str]:
         store.write_loop_events(res.loop_events)
         if vehicles:
             store.write_vehicles(res.vehicles, trajectories=True)
+            tbl = store.db["edie_segments"]
+            if tbl.exists():
+                tbl.delete_where()
+            tbl.insert_all((dict(zip(EDIE_COLUMNS, sg)) for sg in res.edie_segments), batch_size=5000,
+                           columns={c: (int if c in ("vehicle_id", "lane") else float) for c in EDIE_COLUMNS})
     finally:
         store.close()
     return [str(p)]
@@ -267,7 +280,8 @@ def source_video(site: SiteConfig) -> str:
 @click.option("--config", "config_path", required=True, type=click.Path(dir_okay=False), help="Site TOML.")
 @click.option("--fps", type=float, default=None, help="Frame rate; overrides the file's clock. Image sequences carry none: default source.fps.")
 @click.option("--out", type=click.Path(dir_okay=False), default=None, help="results.sqlite or results.csv")
-@click.option("--vehicles", is_flag=True, help="Also write per-vehicle records (with trajectories).")
+@click.option("--vehicles", is_flag=True,
+              help="Also write per-vehicle records (with trajectories) and the Edie segments counted.")
 @click.option("--annotate", type=click.Path(dir_okay=False), default=None, help="Write an annotated video (mp4).")
 @click.option("--snapshots", type=click.Path(file_okay=False), default=None, help="Write annotated PNGs here.")
 @click.option("--start", default=None, help="Wall time of the first frame, ISO 8601 (default 2026-01-01T00:00:00Z).")
@@ -301,7 +315,7 @@ def replay(video: str | None, config_path: str, fps: float | None, out: str | No
             raise click.BadParameter("must be positive", param_hint="--fps")
         try:
             res = replay_video(video, site, fps=fps, start_wall=parse_start(start), annotate=annotate,
-                               snapshots=snapshots, progress=True, max_frames=max_frames)
+                               snapshots=snapshots, progress=True, max_frames=max_frames, edie_log=vehicles)
         except ReplayError as e:
             raise click.ClickException(str(e)) from None
     if res.truncated:
@@ -355,6 +369,7 @@ def replay_truth_tracks(truth_dir: str | Path, site: SiteConfig, start_wall: flo
             times = sorted({round(float(r["t"]), 6) for r in csv.DictReader(f)} | set(times))
     measures = TrafficMeasures(site)
     res = ReplayResult(fps=float(meta.get("fps", 0.0)))
+    measures.edie_log = res.edie_segments
     last_wall = start_wall
     for seq, t in enumerate(times):
         states = by_frame.get(t, [])
