@@ -48,6 +48,14 @@ def test_sweep_simulates_replays_and_compares_with_the_truth(tmp_path):
     assert x.returncode == 0, x.stderr[-2000:]
     assert x.stdout.count("  extra  lane") == sum(causes["extra"].values())
     assert x.stdout.count("  missed lane") == sum(causes["missed"].values())
+    # the Edie distance and time counted, by part: the scene's sums, and evaluate --edie-parts's over all lanes
+    parts = rep["edie_parts"]["free-flow-s11"]
+    assert rep["edie_parts_total"] == parts and "by the truth vehicle under each track (1 scenes" in r.stdout
+    assert parts["truth"][0] > 100 and parts["own"][0] > 0.5 * parts["truth"][0]  # the tracker follows its cars
+    e = subprocess.run([sys.executable, "-m", "tools.cli", "evaluate", "--truth", str(scene / "truth"), "--results",
+                        str(scene / "a.sqlite"), "--edie-parts"], capture_output=True, text=True, timeout=120)
+    assert e.returncode == 0, e.stderr[-2000:]
+    assert f"own ({parts['own'][2]:.0f} tracks): {100 * parts['own'][0] / parts['truth'][0]:.1f} %" in e.stdout
     # each lane's true count is the simulator's own, read here from its aggregates
     truth = Counter()
     with open(scene / "truth" / "aggregates.csv") as f:

@@ -196,3 +196,36 @@ def format_edie_parts(lanes: list[LaneParts]) -> str:
         lines.append("    own tracks' distance against their vehicles' over the same steps: " + ", ".join(
             f"{name} {_pct(m, tr)} of {tr:.0f} m" for name, (m, tr) in lp.own_vs_truth.items() if tr > 0))
     return "\n".join(lines)
+
+
+def total_parts(lanes: list[LaneParts]) -> dict:
+    """The lanes' (and scenes') parts summed: truth and part distances (m) and times (s), tracks, above."""
+    tot: dict = {"truth": [sum(lp.truth_d for lp in lanes), sum(lp.truth_t for lp in lanes)],
+                 "above": [sum(lp.above[0] for lp in lanes), sum(lp.above[1] for lp in lanes)]}
+    for name in PARTS:
+        tot[name] = [sum(lp.parts[name][i] for lp in lanes) for i in range(3)]
+    return tot
+
+
+def format_total(tot: dict, indent: str = "  ") -> str:
+    """Each part's share of the truth's distance and time and its speed against the truth's."""
+    td, tt = tot["truth"]
+    if td <= 0 or tt <= 0:
+        return f"{indent}no truth vehicle in the lanes' regions"
+    v = td / tt
+    md, mt = (sum(tot[p][i] for p in PARTS) for i in (0, 1))
+
+    def speed(d: float, t: float) -> str:
+        return f"speed {100.0 * (d / t / v - 1.0):+.1f} %" if t > 0 else "no speed"
+
+    lines = [f"{indent}counted: distance {100.0 * (md / td - 1.0):+.1f} %, time {100.0 * (mt / tt - 1.0):+.1f} %, "
+             f"{speed(md, mt)} (truth {td:.0f} m, {tt:.0f} s, {3.6 * v:.1f} km/h)"]
+    for name in PARTS:
+        d, t, n = tot[name]
+        line = f"{indent}{name} ({n:.0f} tracks): {100.0 * d / td:.1f} % of the distance, {100.0 * t / tt:.1f} % of the " \
+               f"time, {speed(d, t)}"
+        if name == "own" and tot["above"][1] > 0:
+            ad, at = tot["above"]
+            line += f"; led by a part above the road {100.0 * ad / max(d, 1e-9):.1f} % of it, {speed(ad, at)}"
+        lines.append(line)
+    return "\n".join(lines)

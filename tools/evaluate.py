@@ -514,9 +514,10 @@ def evaluate(results_path: str, truth_dir: str | None, counts_path: str | None, 
         raise click.ClickException(str(e)) from None
 
 
-def _edie_parts_report(truth: dict, results: dict, site_path: str | Path) -> str:
+def edie_parts_of(truth: dict, results: dict, site_path: str | Path) -> list:
+    """tools.edie_parts.edie_parts for a simulator truth and replay results, the lanes' regions from the site."""
     from appliance.config import ConfigError, load_site
-    from tools.edie_parts import edie_parts, format_edie_parts
+    from tools.edie_parts import edie_parts
 
     if not Path(site_path).exists():
         raise EvaluateError(f"{site_path}: no such site config (--edie-parts takes the lanes' regions from it: "
@@ -529,8 +530,15 @@ def _edie_parts_report(truth: dict, results: dict, site_path: str | Path) -> str
         raise EvaluateError("the results hold no Edie segments (write them with roadwatch replay --vehicles)")
     regions = {lane.id: (float(lane.region_y_m[0]), float(lane.region_y_m[1])) for lane in site.lanes}
     cam = truth["meta"].get("camera") or {}
-    parts = edie_parts(truth["vehicles_path"], results["edie_segments"], regions,
-                       float(truth["meta"].get("start_wall", 0.0)),
-                       (float(cam["x_m"]), float(cam["height_m"])) if "x_m" in cam and "height_m" in cam else None)
+    return edie_parts(truth["vehicles_path"], results["edie_segments"], regions,
+                      float(truth["meta"].get("start_wall", 0.0)),
+                      (float(cam["x_m"]), float(cam["height_m"])) if "x_m" in cam and "height_m" in cam else None)
+
+
+def _edie_parts_report(truth: dict, results: dict, site_path: str | Path) -> str:
+    from tools.edie_parts import format_edie_parts, format_total, total_parts
+
+    parts = edie_parts_of(truth, results, site_path)
     return ("\nEdie distance and time counted, by the truth vehicle under each measured track (whole scene; own: "
-            "the first track on a vehicle at each moment, the longest first; duplicate: another one then):\n" + format_edie_parts(parts))
+            "the first track on a vehicle at each moment, the longest first; duplicate: another one then):\n"
+            + format_edie_parts(parts) + "\n  all lanes:\n" + format_total(total_parts(parts), indent="    "))

@@ -17,9 +17,10 @@ from pathlib import Path
 import click
 import numpy as np
 
+from tools.edie_parts import format_total, total_parts
 from tools.evaluate import (EXTRA_CAUSES, MISSED_CAUSES, TABLE1_BANDS, EvaluateError, TruthComparison, cause_counts,
-                            compare_crossings_with_truth, compare_with_truth, format_causes, load_results, load_truth,
-                            period_errors, table1)
+                            compare_crossings_with_truth, compare_with_truth, edie_parts_of, format_causes, load_results,
+                            load_truth, period_errors, table1)
 from tools.simulate.presets import PRESETS
 
 TARGET_PRESETS = ("free-flow", "dense", "shockwave", "long-shadows", "night", "rain", "wind-shake",
@@ -159,6 +160,7 @@ def sweep(presets: str, seeds: str, seconds: float, work: Path, tag: str, no_rep
                 click.echo(f"replayed {sc.name}", err=True)
     rows = []
     causes: dict[str, dict] = {}
+    parts: dict[str, dict] = {}
     for sc in scenes:
         try:
             truth, results = load_truth(sc.dir / "truth"), load_results(sc.dir / f"{tag}.sqlite")
@@ -169,6 +171,8 @@ def sweep(presets: str, seeds: str, seconds: float, work: Path, tag: str, no_rep
         rows += _lane_rows(sc.name, whole, periods)
         if results["crossings"]:
             causes[sc.name] = cause_counts(compare_crossings_with_truth(truth, results["crossings"]))
+        if results.get("edie_segments"):
+            parts[sc.name] = total_parts(edie_parts_of(truth, results, sc.dir / "site.toml"))
     summary = summarise(rows)
     click.echo(format_sweep(rows, summary, complete_only=not partial))
     total = {kind: {k: sum(c[kind][k] for c in causes.values()) for k in names}
@@ -177,6 +181,13 @@ def sweep(presets: str, seeds: str, seconds: float, work: Path, tag: str, no_rep
         click.echo(f"Count-line crossings against the truth's, extra and missed by likely cause "
                    f"({len(causes)} scenes):")
         click.echo(format_causes(total))
+    parts_total = {k: [sum(p[k][i] for p in parts.values()) for i in range(len(v))]
+                   for k, v in next(iter(parts.values())).items()} if parts else {}
+    if parts:
+        click.echo(f"Edie distance and time counted, by the truth vehicle under each track ({len(parts)} scenes; "
+                   f"as evaluate --edie-parts):")
+        click.echo(format_total(parts_total))
     if json_out:
         json_out.write_text(json.dumps({"tag": tag, "scenes": rows, "summary": summary, "causes": causes,
-                                        "causes_total": total}, indent=1, default=lambda o: str(o)))
+                                        "causes_total": total, "edie_parts": parts, "edie_parts_total": parts_total},
+                                       indent=1, default=lambda o: str(o)))
