@@ -1,7 +1,7 @@
 """Where a lane's Edie distance and time come from, against the simulator's truth: the Edie segments the
-measures counted (and took back) in the lane's region, split by the truth vehicle under them (its own track,
-a duplicate of it at the same time, a vehicle of another lane, or none), and the own tracks' distance against
-their vehicles' over the same steps."""
+measures counted (and took back) in the lane's region, split by the truth vehicle under them, on its footprint
+or above it (its own track, a duplicate of it at the same time, a vehicle of another lane, or none), and the
+own tracks' distance against their vehicles' over the same steps."""
 
 from __future__ import annotations
 
@@ -18,8 +18,8 @@ from tools.simulate.vehicles import CLASS_DIMS
 # A measured point is on a truth vehicle when it lies within this much of its front..rear span along the road
 # (the near end tracked is a bumper, a bonnet or a roofline, projected a little beyond the body)
 ON_VEHICLE_M = 2.0
-IN_VIEW_SHARE = 0.95  # a truth vehicle this much visible is in view; less, partly hidden
 # ... or above it: on the road-plane projection of its body up to its height (its roof seen further away)
+IN_VIEW_SHARE = 0.95  # a truth vehicle this much visible is in view; less, partly hidden
 MAX_HEIGHT_M = 4.5  # a class the simulator does not know is at most this tall
 PARTS = ("own", "duplicate", "other lane", "no vehicle")
 OTHER_LANE = -1  # owner of a step on no vehicle of its lane but on one of another lane
@@ -114,7 +114,7 @@ def edie_parts(vehicles_csv: str | Path, segments: list[dict], regions: dict[int
                 return None, False, True
         return None, False, False
 
-    # per lane and vehicle its steps: (d, dt, sign, truth row at the start, at the end, end frame)
+    # per lane and vehicle its steps: (d, dt, sign, truth row at the start, at the end, end frame, above it)
     steps: dict[tuple[int, int], list] = defaultdict(list)
     votes: dict[tuple[int, int], dict] = defaultdict(lambda: defaultdict(float))
     segments = [sg for sg in segments if int(sg["lane"]) in regions]
@@ -191,8 +191,8 @@ def format_edie_parts(lanes: list[LaneParts]) -> str:
         lines.append("    " + "; ".join(f"{name} {n} tracks {d:.0f} m {t:.0f} s {_kmh(d, t)}"
                                         for name, (d, t, n) in lp.parts.items() if n))
         if lp.above[1] > 0:
-            lines.append(f"    own steps led by a part above the road (not on its vehicle's footprint): {lp.above[0]:.0f} m "
-                         f"{lp.above[1]:.0f} s {_kmh(*lp.above)}")
+            lines.append(f"    own steps led by a part above the road (not on its vehicle's footprint): "
+                         f"{lp.above[0]:.0f} m {lp.above[1]:.0f} s {_kmh(*lp.above)}")
         lines.append("    own tracks' distance against their vehicles' over the same steps: " + ", ".join(
             f"{name} {_pct(m, tr)} of {tr:.0f} m" for name, (m, tr) in lp.own_vs_truth.items() if tr > 0))
     return "\n".join(lines)
@@ -222,8 +222,8 @@ def format_total(tot: dict, indent: str = "  ") -> str:
              f"{speed(md, mt)} (truth {td:.0f} m, {tt:.0f} s, {3.6 * v:.1f} km/h)"]
     for name in PARTS:
         d, t, n = tot[name]
-        line = f"{indent}{name} ({n:.0f} tracks): {100.0 * d / td:.1f} % of the distance, {100.0 * t / tt:.1f} % of the " \
-               f"time, {speed(d, t)}"
+        line = f"{indent}{name} ({n:.0f} tracks): {100.0 * d / td:.1f} % of the distance, " \
+               f"{100.0 * t / tt:.1f} % of the time, {speed(d, t)}"
         if name == "own" and tot["above"][1] > 0:
             ad, at = tot["above"]
             line += f"; led by a part above the road {100.0 * ad / max(d, 1e-9):.1f} % of it, {speed(ad, at)}"

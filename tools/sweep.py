@@ -19,8 +19,8 @@ import numpy as np
 
 from tools.edie_parts import format_total, total_parts
 from tools.evaluate import (EXTRA_CAUSES, MISSED_CAUSES, TABLE1_BANDS, EvaluateError, TruthComparison, cause_counts,
-                            compare_crossings_with_truth, compare_with_truth, edie_parts_of, format_causes, load_results,
-                            load_truth, period_errors, table1)
+                            compare_crossings_with_truth, compare_with_truth, edie_parts_of, format_causes,
+                            load_results, load_truth, period_errors, table1)
 from tools.simulate.presets import PRESETS
 
 TARGET_PRESETS = ("free-flow", "dense", "shockwave", "long-shadows", "night", "rain", "wind-shake",
