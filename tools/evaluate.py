@@ -7,9 +7,13 @@ import json
 import sqlite3
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import click
 import numpy as np
+
+if TYPE_CHECKING:
+    from tools.edie_parts import LaneParts
 
 TABLE1_BANDS = (2.5, 5.0, 10.0, 15.0, 20.0, 25.0)  # % bands of the paper's Table 1
 SPOT_MIN_KMH = 15.0  # spot speeds are compared for vehicles at least this fast (a crawl's relative error says little)
@@ -514,7 +518,7 @@ def evaluate(results_path: str, truth_dir: str | None, counts_path: str | None, 
         raise click.ClickException(str(e)) from None
 
 
-def edie_parts_of(truth: dict, results: dict, site_path: str | Path) -> list:
+def edie_parts_of(truth: dict, results: dict, site_path: str | Path) -> list[LaneParts]:
     """tools.edie_parts.edie_parts for a simulator truth and replay results, the lanes' regions from the site."""
     from appliance.config import ConfigError, load_site
     from tools.edie_parts import edie_parts

@@ -161,6 +161,7 @@ def sweep(presets: str, seeds: str, seconds: float, work: Path, tag: str, no_rep
     rows = []
     causes: dict[str, dict] = {}
     parts: dict[str, dict] = {}
+    lanes = []  # every scene's lanes, for the Edie parts' sums
     for sc in scenes:
         try:
             truth, results = load_truth(sc.dir / "truth"), load_results(sc.dir / f"{tag}.sqlite")
@@ -172,7 +173,9 @@ def sweep(presets: str, seeds: str, seconds: float, work: Path, tag: str, no_rep
         if results["crossings"]:
             causes[sc.name] = cause_counts(compare_crossings_with_truth(truth, results["crossings"]))
         if results.get("edie_segments"):
-            parts[sc.name] = total_parts(edie_parts_of(truth, results, sc.dir / "site.toml"))
+            scene_lanes = edie_parts_of(truth, results, sc.dir / "site.toml")
+            parts[sc.name] = total_parts(scene_lanes)
+            lanes += scene_lanes
     summary = summarise(rows)
     click.echo(format_sweep(rows, summary, complete_only=not partial))
     total = {kind: {k: sum(c[kind][k] for c in causes.values()) for k in names}
@@ -181,8 +184,7 @@ def sweep(presets: str, seeds: str, seconds: float, work: Path, tag: str, no_rep
         click.echo(f"Count-line crossings against the truth's, extra and missed by likely cause "
                    f"({len(causes)} scenes):")
         click.echo(format_causes(total))
-    parts_total = {k: [sum(p[k][i] for p in parts.values()) for i in range(len(v))]
-                   for k, v in next(iter(parts.values())).items()} if parts else {}
+    parts_total = total_parts(lanes) if parts else {}
     if parts:
         click.echo(f"Edie distance and time counted, by the truth vehicle under each track ({len(parts)} scenes; "
                    f"as evaluate --edie-parts):")
