@@ -1021,6 +1021,12 @@ class Grouper:
         side = self._side_host(tr, st, y, vy, members, sign, shadow)
         if side is not None:
             return side
+        # where the group's near end may lie on the road once a height magnification is undone (a cheap test
+        # that spares most vehicles the rest)
+        g_lo = g_hi = y
+        if self.foot is not None:
+            g_far = self.foot[1] + (y - self.foot[1]) / self.k_max
+            g_lo, g_hi = min(y, g_far), max(y, g_far)
         for vid, other in self.tracks.items():
             o = other.last
             if vid == tr.id or o is None or o.t != st.t or o.vy * vy <= 0:
@@ -1031,6 +1037,9 @@ class Grouper:
                 continue  # a new group is a part of a larger one, not the other way round
             if tr.reported and (not other.reported or other.report_t > tr.report_t):
                 continue  # a reported vehicle only joins one reported before it
+            lo, hi = _extent(o, other.own_length)
+            if g_hi < lo or g_lo > max(hi, lo + 1.0 + ELEVATED_LENGTH_M + 1.0):
+                continue
             ov = other.steady_vy(o.vy) if tr.reported else o.vy
             if ov * vy <= 0:
                 continue
@@ -1045,7 +1054,6 @@ class Grouper:
                     gy = self.foot[1] + (y - self.foot[1]) / k
                 else:  # camera unknown: an elevated part may lie anywhere across the vehicle's lane
                     m = FRAGMENT_X_MARGIN_NO_CAMERA_M
-            lo, hi = _extent(o, other.own_length)
             on = lo <= gy <= hi and other.x_lo - m <= gx <= other.x_hi + m
             if not on and k > LEVEL_K and self.foot is not None and joined is not None:
                 x_lo = min(other.x_lo, other.x_hi - ELEVATED_WIDTH_M)
@@ -1075,16 +1083,19 @@ class Grouper:
                 continue
             if tr.reported and not other.reported:
                 continue
+            place = y - other.trajectory[-1][2]
+            dy = abs(place)
+            if dy > SHADOW_DY_M:
+                continue
             # a part reported before its vehicle: its shadow, or its flank if the vehicle is much the bigger
             late = tr.reported and other.report_t > tr.report_t
             flank = not late or other.n_now >= SIDE_LATE_HOST_K * tr.n_now
             ov = other.steady_vy(o.vy) if tr.reported else o.vy
             if ov * vy <= 0:
                 continue
-            self._place = y - other.trajectory[-1][2]
-            dy = abs(self._place)
+            self._place = place
             dv = abs(vy / ov - 1.0)
-            if dv > SHADOW_SPEED_TOL or dy > SHADOW_DY_M:
+            if dv > SHADOW_SPEED_TOL:
                 continue
             gap = max(tr.x_lo - other.x_hi, other.x_lo - tr.x_hi)
             width = max(tr.x_hi, other.x_hi) - min(tr.x_lo, other.x_lo)
