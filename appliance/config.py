@@ -98,6 +98,10 @@ class TrackingParams:
     """One parameter set for all scenes (the papers insist on it). Distances in metres."""
 
     max_features: int = 512
+    # Frames wider than this are scaled down to it (keeping their aspect) before the vision stages, so the pixel
+    # parameters below mean the same on every camera; 0 works on frames at full size. (At full size a 1280x720
+    # camera shows each vehicle with four times the corners, parts of it enough for a vehicle of their own.)
+    work_width_px: int = 640
     template_px: int = 9
     search_radius_px: int = 6
     # minimum eigenvalue of the normalised structure tensor, in daylight (see appliance.corners.dim_scale)
@@ -480,6 +484,8 @@ def _validate(cfg: SiteConfig) -> None:
             raise ConfigError(f"fiducials[{i}]", f"{f} is not a point inside the {src.width}x{src.height} image")
 
     t = cfg.tracking
+    if t.work_width_px != 0 and t.work_width_px < 160:
+        raise ConfigError("tracking.work_width_px", f"must be 0 (full size) or at least 160, got {t.work_width_px}")
     if t.template_px % 2 == 0 or t.template_px < 5:
         raise ConfigError("tracking.template_px", "must be odd and at least 5")
     if t.connection_m <= t.segmentation_m:
@@ -522,6 +528,29 @@ def parse_site(data: dict, source: str | None = None) -> SiteConfig:
     cfg.raw = data
     cfg.path = source
     return cfg
+
+
+def working_size(site: SiteConfig) -> tuple[int, int]:
+    """The frame size the vision stages work at (see TrackingParams.work_width_px)."""
+    w, h, ww = int(site.source.width), int(site.source.height), int(site.tracking.work_width_px)
+    if ww <= 0 or w <= ww:
+        return w, h
+    return ww, max(1, round(h * ww / w))
+
+
+def at_working_size(site: SiteConfig) -> SiteConfig:
+    """A validated site with its image geometry (source size, calibration points, fiducials, homography) in the
+    pixels of its working size; the site itself when that is its full size."""
+    (ww, wh), (w, h) = working_size(site), (int(site.source.width), int(site.source.height))
+    if (ww, wh) == (w, h):
+        return site
+    sx, sy = ww / w, wh / h
+    out = dataclasses.replace(
+        site, source=dataclasses.replace(site.source, width=ww, height=wh),
+        calibration=dataclasses.replace(site.calibration, image_px=[[x * sx, y * sy] for x, y in site.calibration.image_px]),
+        fiducials=[[x * sx, y * sy] for x, y in site.fiducials])
+    out.homography = Homography.from_matrix(site.homography.H @ np.diag([1.0 / sx, 1.0 / sy, 1.0]))
+    return out
 
 
 def load_site(path: str | Path) -> SiteConfig:

@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from appliance.background import Background
-from appliance.config import SiteConfig
+from appliance.config import SiteConfig, at_working_size
 from appliance.corners import CornerDetector, dim_scale
 from appliance.edie import back_to_entry
 from appliance.grouping import RECHECK_S, SETTLED_AGE, STILL_M, STILL_S, Grouper
@@ -80,16 +80,19 @@ class VisionPipeline:
         self.site = site
         self.width, self.height = int(site.source.width), int(site.source.height)
         self.deinterlace = bool(site.source.deinterlace)
-        self.zones = SiteZones(site)
-        H = site.homography
+        work = at_working_size(site)  # the stages work in its pixels
+        self.work_size = (int(work.source.width), int(work.source.height))
+        self._up = np.array([self.width / self.work_size[0], self.height / self.work_size[1]])  # to the camera's
+        self.zones = SiteZones(work)
+        H = work.homography
         p = site.tracking
         self.p = p
-        self.stabiliser = Stabiliser(site.fiducials, self.zones.lane_image, enabled=p.stabilise)
+        self.stabiliser = Stabiliser(work.fiducials, self.zones.lane_image, enabled=p.stabilise)
         self.detector = CornerDetector(p, self.zones.detection_roi, self.zones.detection_mask_roi)
         self.tracker = FeatureTracker(p, H.H, H.Hinv)
         self.grouper = Grouper(p, self.zones)
         self.background = Background()
-        self.presence = LoopPresence(site, self.zones) if p.standing_calls else None
+        self.presence = LoopPresence(work, self.zones) if p.standing_calls else None
         self.prev: np.ndarray | None = None
         self.prev_grid: np.ndarray | None = None
         self.prev_t: float | None = None
@@ -103,8 +106,6 @@ class VisionPipeline:
             "fiducials_ok": 0, "fiducials_total": 0, "repeated_frames": 0, "mean_grey": 0.0,
         }
         self.timings: dict[str, float] = {"stabilise": 0.0, "track": 0.0, "detect": 0.0, "group": 0.0, "presence": 0.0}
-        lanes_px = [np.round(lz.polygon_px).astype(np.int32) for lz in self.zones.lanes]
-        self._lanes_px = lanes_px
 
     # ------------------------------------------------------------------------------------------
     def warmup(self) -> None:
@@ -159,7 +160,10 @@ class VisionPipeline:
             )
         if img.dtype != np.uint8:
             raise ValueError(f"frame {frame.seq}: image dtype {img.dtype}, expected uint8")
-        return top_field(img) if self.deinterlace else np.ascontiguousarray(img)
+        img = top_field(img) if self.deinterlace else np.ascontiguousarray(img)
+        if self.work_size != (self.width, self.height):
+            img = cv2.resize(img, self.work_size, interpolation=cv2.INTER_AREA)
+        return img
 
     def step(self, frame: Frame) -> list[VehicleState]:
         img = self._check_frame(frame)
@@ -218,7 +222,7 @@ class VisionPipeline:
         st["features"] = int(tr.alive.sum())
         st["vehicles"] = sum(1 for v in states if not v.finished)
         st["finished"] = self.grouper.finished_total
-        st["shake_px"] = (round(self.offset[0], 2), round(self.offset[1], 2))
+        st["shake_px"] = (round(self.offset[0] * self._up[0], 2), round(self.offset[1] * self._up[1], 2))
         st["fiducials_ok"] = self.stabiliser.n_ok
         st["fiducials_total"] = self.stabiliser.n_total
         return states
@@ -229,7 +233,7 @@ class VisionPipeline:
         background may hold a vehicle standing there now: see appliance.presence.TRUST_S)."""
         old = self.presence
         self.site = site
-        self.presence = LoopPresence(site, self.zones) if self.p.standing_calls else None
+        self.presence = LoopPresence(at_working_size(site), self.zones) if self.p.standing_calls else None
         if old is not None and self.presence is not None:
             self.presence.keep(old)
 
@@ -412,30 +416,35 @@ class VisionPipeline:
 
     # ------------------------------------------------------------------------------------------
     def overlay(self, image: np.ndarray) -> np.ndarray:
-        """BGR drawing of lanes, zones, features and vehicles (one colour per vehicle) with ids."""
+        """BGR drawing of lanes, zones, features and vehicles (one colour per vehicle) with ids, on the camera's
+        frame."""
         out = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR) if image.ndim == 2 else image.copy()
-        for lz, poly in zip(self.zones.lanes, self._lanes_px):
-            cv2.polylines(out, [poly], True, (200, 200, 200), 1, cv2.LINE_AA)
+
+        def up(pts: np.ndarray) -> np.ndarray:  # working pixels to the camera's
+            return np.round(np.asarray(pts, np.float64) * self._up).astype(np.int32)
+
+        for lz in self.zones.lanes:
+            cv2.polylines(out, [up(lz.polygon_px)], True, (200, 200, 200), 1, cv2.LINE_AA)
             if len(lz.detection_px) >= 3:
-                cv2.polylines(out, [np.round(lz.detection_px).astype(np.int32)], True, (0, 200, 0), 1)
+                cv2.polylines(out, [up(lz.detection_px)], True, (0, 200, 0), 1)
             if len(lz.exit_px) >= 3:
-                cv2.polylines(out, [np.round(lz.exit_px).astype(np.int32)], True, (0, 0, 220), 1)
-            c = np.round(self.zones.H.road_to_img(
-                [[lz.polygon_m[:, 0].min(), lz.count_y], [lz.polygon_m[:, 0].max(), lz.count_y]])).astype(int)
-            cv2.line(out, tuple(c[0]), tuple(c[1]), (0, 220, 220), 1)
+                cv2.polylines(out, [up(lz.exit_px)], True, (0, 0, 220), 1)
+            c = up(self.zones.H.road_to_img(
+                [[lz.polygon_m[:, 0].min(), lz.count_y], [lz.polygon_m[:, 0].max(), lz.count_y]]))
+            cv2.line(out, tuple(map(int, c[0])), tuple(map(int, c[1])), (0, 220, 220), 1)
         tr, g = self.tracker, self.grouper
         live = tr.live()
-        for i in live:
+        for i, (x, y) in zip(live, up(tr.px[live])):
             vid = int(g.fvid[i])
             col = _colour(vid) if vid in g.tracks and g.tracks[vid].reported else (128, 128, 128)
-            cv2.circle(out, (int(tr.px[i, 0]), int(tr.px[i, 1])), 2, col, -1)
+            cv2.circle(out, (int(x), int(y)), 2, col, -1)
         for vid, trk in g.tracks.items():
             if not trk.reported:
                 continue
             members = live[g.fvid[live] == vid]
             if not len(members):
                 continue
-            pts = tr.px[members].astype(np.int32)
+            pts = up(tr.px[members])
             x0, y0 = pts.min(axis=0)
             x1, y1 = pts.max(axis=0)
             col = _colour(vid)

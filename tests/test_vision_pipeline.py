@@ -76,7 +76,9 @@ class Scene:
         """(x, y of the front) of each vehicle at time t."""
         return [(v["x"], v["y"] + v["v"] * max(t - v["t0"], 0.0)) for v in self.vehicles]
 
-    def render(self, t: float, shake: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+    def render(self, t: float, shake: tuple[float, float] = (0.0, 0.0), scale: int = 1) -> np.ndarray:
+        """The camera's frame at time t, shaken by (dx, dy) pixels; scale: a camera of that many times the
+        resolution (W x H each way)."""
         canvas = self.road.copy()
         for v, (x, yf) in zip(self.vehicles, self.positions(t)):
             if v["shadow"] > 0:
@@ -96,9 +98,9 @@ class Scene:
             a0, b0 = max(cy0, 0), min(cy0 + tex.shape[0], canvas.shape[0])
             if b0 > a0:
                 canvas[a0:b0, cx0 : cx0 + tex.shape[1]] = tex[a0 - cy0 : b0 - cy0]
-        M = self.M.copy()
+        M = np.diag([scale, scale, 1.0]) @ self.M
         M = np.array([[1, 0, shake[0]], [0, 1, shake[1]], [0, 0, 1]]) @ M
-        return cv2.warpPerspective(canvas, M, (W, H), flags=cv2.INTER_LINEAR)
+        return cv2.warpPerspective(canvas, M, (W * scale, H * scale), flags=cv2.INTER_LINEAR)
 
 
 def run(pipe: VisionPipeline, scene: Scene, seconds: float, fps: float = 25.0, shake=None, repeat_every: int = 0):
@@ -234,6 +236,44 @@ def test_overlay_draws(site):
     out = pipe.overlay(img)
     assert out.shape == (H, W, 3)
     assert np.count_nonzero(np.any(out != img[..., None], axis=2)) > 500
+
+
+def test_a_camera_of_higher_resolution_is_worked_at_the_working_width():
+    """A camera twice the working width each way: the stages work on the frame scaled down to it (the site's
+    pixel geometry with it), and report vehicles, shake and drawings in the camera's own terms."""
+    d = site_dict(fiducials=[[20.0, 300.0], [460.0, 300.0]])
+    d["source"].update(width=2 * W, height=2 * H)
+    d["calibration"]["image_px"] = [[2 * x, 2 * y] for x, y in IMG_PTS]
+    d["fiducials"] = [[2 * x, 2 * y] for x, y in d["fiducials"]]
+    d["tracking"] = {"work_width_px": W}
+    big = parse_site(d)
+    pipe = VisionPipeline(big)
+    assert pipe.work_size == (W, H)
+    # the working homography maps working pixels where the camera's maps the camera's
+    road = pipe.zones.H.img_to_road([[100.0, 200.0]])
+    assert np.allclose(road, big.homography.img_to_road([[200.0, 400.0]]), atol=1e-6)
+    scene = Scene(1)
+    scene.add_vehicle(-1.75, 74.0, 4.5, -20.0)
+    finished = []
+    for k in range(int(3.8 * 25)):
+        t = k / 25
+        states = pipe.step(Frame(seq=k, t=t, wall=1767225600.0 + t, image=scene.render(t, (6.0 * (t >= 1.0), 0.0), scale=2)))
+        finished += [s for s in states if s.finished]
+    # as test_single_vehicle_tracked_with_speed at the working size itself
+    assert len(finished) == 1
+    assert abs(finished[0].vy + 20.0) < 1.0, finished[0].vy
+    assert abs(finished[0].x + 1.75) < 1.0
+    assert abs(pipe.stats["shake_px"][0] - 6.0) < 1.0, pipe.stats["shake_px"]  # in the camera's pixels
+    img = scene.render(3.8, scale=2)
+    out = pipe.overlay(img)
+    assert out.shape == (2 * H, 2 * W, 3)
+    # the count line is drawn where it lies in the camera's frame
+    lz = pipe.zones.lanes[0]
+    a, b = big.homography.road_to_img([[lz.polygon_m[:, 0].min(), lz.count_y], [lz.polygon_m[:, 0].max(), lz.count_y]])
+    mid = np.round((a + b) / 2).astype(int)
+    assert tuple(out[mid[1], mid[0]]) == (0, 220, 220)
+    with pytest.raises(Exception, match="work_width_px"):
+        parse_site(dict(d, tracking={"work_width_px": 100}))
 
 
 def test_stabiliser_follows_shake_and_drift_and_notices_occlusion():
