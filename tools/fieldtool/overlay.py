@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike
 
-from appliance.config import SiteConfig, clip_polygon_y
+from appliance.config import SiteConfig, clip_polygon_y, working_size
 from appliance.geometry import Homography
 
 # BGR, as cv2 uses them; docs/field-guide.md lists them for installers
@@ -119,7 +119,8 @@ def draw_site(image: np.ndarray, cfg: SiteConfig, labels: bool = True) -> np.nda
         for lp in cfg.loops:
             poly = loops[lp.id]
             _label(img, f"{lp.id} ch{lp.channel}", (poly[:, 0].max() + 3, poly[:, 1].mean() + 4), COLOURS["loop"])
-    half = cfg.tracking.template_px // 2 + 4
+    # the patch around each fiducial, in the camera's pixels (the stabiliser works at the working size)
+    half = round((cfg.tracking.template_px // 2 + 4) * cfg.source.width / working_size(cfg)[0])
     for i, (u, v) in enumerate(cfg.fiducials):
         c = (int(round(u)), int(round(v)))
         cv2.drawMarker(img, c, COLOURS["fiducial"], cv2.MARKER_CROSS, 2 * half, 1, cv2.LINE_AA)
