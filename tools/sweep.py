@@ -47,18 +47,21 @@ def _run(what: str, cmd: list[str], log: Path) -> None:
         raise click.ClickException(f"{what} failed (exit {r.returncode}); see {log}")
 
 
-def _prepare(scene: Scene, seconds: float, tag: str) -> Path:
+def _prepare(scene: Scene, seconds: float, tag: str, size: tuple[int, int] = (640, 480)) -> Path:
     """Render the scene if it is not there yet, then replay it into TAG.sqlite (always afresh)."""
     roadwatch = [sys.executable, "-m", "tools.cli"]
     scene.dir.mkdir(parents=True, exist_ok=True)
     meta = scene.dir / "truth" / "meta.json"
     if meta.exists():
-        had = json.loads(meta.read_text()).get("seconds")
-        if had != seconds:
-            raise click.ClickException(f"{scene.dir} holds a {had} s scene, not {seconds:g} s: use another --work")
+        m = json.loads(meta.read_text())
+        had = (m.get("seconds"), (m.get("width"), m.get("height")))
+        if had != (seconds, size):
+            raise click.ClickException(f"{scene.dir} holds a {had[0]} s {had[1][0]}x{had[1][1]} scene, not "
+                                       f"{seconds:g} s {size[0]}x{size[1]}: use another --work")
     else:
         _run(f"simulating {scene.name}", roadwatch + ["simulate", "--preset", scene.preset, "--seed", str(scene.seed),
-                                                      "--seconds", str(seconds), "--out", str(scene.dir), "--quiet"],
+                                                      "--seconds", str(seconds), "--out", str(scene.dir), "--quiet",
+                                                      "--width", str(size[0]), "--height", str(size[1])],
              scene.dir / "simulate.log")
     out = scene.dir / f"{tag}.sqlite"
     out.unlink(missing_ok=True)
@@ -128,6 +131,7 @@ def format_sweep(rows: list[dict], summary: dict, complete_only: bool) -> str:
               help="Scene length (one 5-minute period plus the start).")
 @click.option("--work", type=click.Path(file_okay=False, path_type=Path), required=True,
               help="Directory for the scenes (reused) and the replays.")
+@click.option("--size", default="640x480", show_default=True, help="Frame size of the scenes rendered, WxH.")
 @click.option("--tag", default="results", show_default=True, help="Name of this run's results files.")
 @click.option("--no-replay", is_flag=True, help="Only evaluate the TAG results already there.")
 @click.option("--jobs", "-j", type=click.IntRange(min=1), default=1, show_default=True, help="Scenes in parallel.")
@@ -135,8 +139,8 @@ def format_sweep(rows: list[dict], summary: dict, complete_only: bool) -> str:
               help="Also compare the partial periods (a scene's last minutes).")
 @click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Also write the per-scene errors and the summary as JSON.")
-def sweep(presets: str, seeds: str, seconds: float, work: Path, tag: str, no_replay: bool, jobs: int, partial: bool,
-          json_out: Path | None) -> None:
+def sweep(presets: str, seeds: str, seconds: float, work: Path, size: str, tag: str, no_replay: bool, jobs: int,
+          partial: bool, json_out: Path | None) -> None:
     """Simulate, replay and evaluate several scenes; print per-scene errors and the targets' shares.
 
     \b
@@ -151,10 +155,16 @@ def sweep(presets: str, seeds: str, seconds: float, work: Path, tag: str, no_rep
         seed_list = [int(s) for s in seeds.split(",") if s.strip()]
     except ValueError:
         raise click.BadParameter(f"{seeds!r} is not a comma-separated list of integers", param_hint="--seeds") from None
+    try:
+        wh = tuple(int(v) for v in size.lower().split("x"))
+    except ValueError:
+        wh = ()
+    if len(wh) != 2 or min(wh) < 64:
+        raise click.BadParameter(f"{size!r} is not WIDTHxHEIGHT (e.g. 1280x720)", param_hint="--size")
     scenes = [Scene(p, s, work / f"{p}-s{s}") for s in seed_list for p in names]
     if not no_replay:
         with ThreadPoolExecutor(max_workers=jobs) as pool:
-            futures = {sc.name: pool.submit(_prepare, sc, seconds, tag) for sc in scenes}
+            futures = {sc.name: pool.submit(_prepare, sc, seconds, tag, wh) for sc in scenes}
             for sc in scenes:
                 futures[sc.name].result()
                 click.echo(f"replayed {sc.name}", err=True)
