@@ -78,8 +78,14 @@ def test_sweep_simulates_replays_and_compares_with_the_truth(tmp_path):
     assert other.returncode == 1 and "b.sqlite" in other.stderr  # --no-replay only reads what is there
     longer = _sweep("--presets", "free-flow", "--seeds", "11", "--seconds", "20", "--work", str(work))
     assert longer.returncode != 0 and "16" in longer.stderr and "20" in longer.stderr
+    # ... nor is one of another frame size
+    bigger = _sweep("--presets", "free-flow", "--seeds", "11", "--seconds", "16", "--size", "1280x720", "--work",
+                    str(work))
+    assert bigger.returncode != 0 and "640x480" in bigger.stderr and "1280x720" in bigger.stderr
 
 
 def test_sweep_names_an_unknown_preset(tmp_path):
     r = _sweep("--presets", "free-flow,hail", "--work", str(tmp_path))
     assert r.returncode == 2 and "hail" in r.stderr
+    r = _sweep("--size", "1280by720", "--work", str(tmp_path))
+    assert r.returncode == 2 and "--size" in r.stderr and "1280by720" in r.stderr
