@@ -659,9 +659,7 @@ class Grouper:
         self.recent: list[tuple[VehicleState, float, float]] = []  # finished vehicles, for their leftovers
         # (t, lane index, near end, speed) of reported vehicles lost
         self.lost: list[tuple[float, int, float, float]] = []
-        cam = zones.camera  # (X, Y, height) of the camera, or None
-        # only a plausible pole or overpass camera is used to undo the height magnification
-        self.foot = cam if cam is not None and 3.0 <= cam[2] <= 60.0 else None
+        self.foot = zones.camera  # (X, Y, height) of the camera, or None
         h = self.foot[2] if self.foot is not None else 0.0
         self.k_max = min(2.5, h / (h - MAX_HEIGHT_M)) if h > MAX_HEIGHT_M + 0.5 else 2.5
 

@@ -157,20 +157,41 @@ class SiteZones:
         return self.lanes[index - 1]
 
 
+MAX_FOCAL_DISAGREEMENT = 3.0  # see camera_from_homography
+MIN_AXES_COSINE = 0.05  # ditto
+CAMERA_HEIGHT_M = (3.0, 60.0)  # a plausible pole or overpass camera
+
+
 def camera_from_homography(H: Homography, width: int, height: int) -> tuple[float, float, float] | None:
     """Camera foot (X, Y) on the road and height (m), assuming square pixels and the principal point at
-    the image centre. None when the homography does not fit a pinhole camera above the road."""
+    the image centre. None when the homography does not fit such a camera on a pole or overpass
+    (CAMERA_HEIGHT_M), or does not fix how far away the camera is."""
     cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
-    A = np.array([[1, 0, -cx], [0, 1, -cy], [0, 0, 1]], dtype=np.float64) @ H.Hinv
-    a1, a2, a3 = A[:, 0], A[:, 1], A[:, 2]
-    den = a1[2] * a2[2]
-    f2 = -(a1[0] * a2[0] + a1[1] * a2[1]) / den if abs(den) > 1e-15 else -1.0
-    if not np.isfinite(f2) or f2 <= 0:
-        d = a2[2] ** 2 - a1[2] ** 2
-        f2 = (a1[0] ** 2 + a1[1] ** 2 - a2[0] ** 2 - a2[1] ** 2) / d if abs(d) > 1e-15 else -1.0
-    if not np.isfinite(f2) or f2 <= 0:
+    s = float(width)  # image coordinates in widths: the two constraints below then weigh alike
+    A = np.diag([1 / s, 1 / s, 1.0]) @ np.array([[1, 0, -cx], [0, 1, -cy], [0, 0, 1]], dtype=np.float64) @ H.Hinv
+    a1, a2 = A[:, 0], A[:, 1]
+    # The road's X and Y axes seen through K^-1 are orthogonal and of equal length, each linear in w = 1 / f^2:
+    # c w + d = 0. Least squares over both weighs each by how much it says: the first one's terms both shrink
+    # as the camera's pan does, and click errors of half a pixel move its w by 40 % at a pan of 8 degrees.
+    c = np.array([a1[0] * a2[0] + a1[1] * a2[1], a1[0] ** 2 + a1[1] ** 2 - a2[0] ** 2 - a2[1] ** 2])
+    d = np.array([a1[2] * a2[2], a1[2] ** 2 - a2[2] ** 2])
+    w = -float(c @ d) / float(c @ c) if float(c @ c) > 1e-30 else -1.0
+    if not np.isfinite(w) or w <= 0:
         return None
-    Kinv = np.diag([1 / np.sqrt(f2), 1 / np.sqrt(f2), 1.0])
+    # The second one alone holds for any along-road scale (a focal length to match each). The first one says
+    # how far the camera's axis turns from the road's (its terms shrink together as the pan does): where the
+    # road's axes are far from perpendicular in the image (cosine over MIN_AXES_COSINE) and it gives a focal
+    # length more than MAX_FOCAL_DISAGREEMENT times the fit's, no camera with its principal point at the image
+    # centre fits (a cropped frame; a calibration from assumed marking standards: a real overpass clip gave 15
+    # times). A negative w there is click errors' noise.
+    cos = abs(c[0]) / (np.hypot(a1[0], a1[1]) * np.hypot(a2[0], a2[1]) + 1e-30)
+    w1 = -d[0] / c[0] if abs(c[0]) > 1e-30 else 0.0
+    if cos > MIN_AXES_COSINE and w1 > 0 and max(w1 / w, w / w1) > MAX_FOCAL_DISAGREEMENT ** 2:
+        return None
+    f = s / np.sqrt(w)
+    A = np.diag([s, s, 1.0]) @ A
+    a1, a2, a3 = A[:, 0], A[:, 1], A[:, 2]
+    Kinv = np.diag([1 / f, 1 / f, 1.0])
     b1, b2, b3 = Kinv @ a1, Kinv @ a2, Kinv @ a3
     lam = np.sqrt(np.linalg.norm(b1) * np.linalg.norm(b2))
     r1, r2 = b1 / np.linalg.norm(b1), b2 / np.linalg.norm(b2)
@@ -181,6 +202,6 @@ def camera_from_homography(H: Homography, width: int, height: int) -> tuple[floa
     if C[2] < 0:  # the other sign of lambda
         C = -R.T @ (-t)
         C[2] = abs(C[2])
-    if not np.all(np.isfinite(C)) or C[2] <= 0.5:
+    if not np.all(np.isfinite(C)) or not CAMERA_HEIGHT_M[0] <= C[2] <= CAMERA_HEIGHT_M[1]:
         return None
     return float(C[0]), float(C[1]), float(C[2])

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 import tomllib
 
 import cv2
@@ -53,6 +54,20 @@ def test_exact_points_fit_and_write(tmp_path) -> None:
     assert np.allclose(cfg.homography.road_to_img(probe), TRUE.road_to_img(probe), atol=0.05)
     assert (tmp_path / "site.toml.last-good").read_bytes() == before
     assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
+
+
+def test_the_camera_placed_by_the_calibration_is_reported() -> None:
+    """A camera 11 m up beside the road (pan 6 degrees) comes out of points clicked on its image."""
+    from tools.simulate.camera import Camera
+
+    cam = Camera(height_m=11.0, tilt_deg=14.0, pan_deg=-6.0, x_m=7.0)
+    road = np.array(ROAD)
+    img = cam.road_to_image(road)
+    res = check(Homography.from_points(img, road), Correspondences(img.tolist(), road.tolist()), (640, 480))
+    note = next(n for n in res.notes if n.startswith("camera about"))
+    assert "the tracker undoes vehicle heights" in note
+    h, x, _ = (float(v) for v in re.findall(r"-?\d+\.\d+", note))
+    assert abs(h - 11.0) < 0.2 and abs(x - 7.0) < 0.2, note
 
 
 def test_lane_lines_with_known_width_recover_the_homography() -> None:
@@ -206,6 +221,8 @@ def test_real_clip_calibration_from_hand_marked_points(tmp_path, shared_data) ->
     # the hand-marked points of this clip fit to ~0.1 m (counts.json lists its residuals);
     # 0.3 m is the level above which a marking was clearly mis-clicked
     assert data["mean_error_m"] < 0.3 and data["warnings"] == []
+    # its frame is likely a crop (principal point at x 276): the installer learns that heights go uncorrected
+    assert any("no camera on a pole or overpass" in n for n in data["notes"]), data["notes"]
     img = cv2.imread(str(out))
     assert img.shape == (240, 320, 3) and img.std() > 20  # drawn on the real frame, not on a blank
     saved = tomllib.loads(p.read_text())
