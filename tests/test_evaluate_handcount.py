@@ -7,12 +7,11 @@ import subprocess
 import sys
 from pathlib import Path
 
-import cv2
-import numpy as np
 import pytest
 from click.testing import CliRunner
 
 from appliance.config import load_site
+from tools.clip_variants import make_variant
 from tools.evaluate import compare_with_counts
 from tools.handcount import load_counts, site_from_counts
 
@@ -108,46 +107,9 @@ def test_replay_and_evaluate_real_clip(site_file, counts_file, tmp_path):
     assert sum(rows[lane][4] for lane in hand) <= 8, text
 
 
-def _variant_clip(counts_file: Path, out_dir: Path, kind: str) -> Path:
-    """The real clip changed the way other sites' footage differs, with the same hand counts:
-    ``reversed`` played backwards (receding traffic entering over the image's bottom edge; frames linked,
-    crossing frames and directions mirrored), ``dark`` at 30 % brightness with sensor noise, ``drift`` the
-    picture shifting 20 px right and 10 px down over the clip with 2 px of wind shake, ``repeat`` every other
-    frame a repeat (12.5 frames/s footage in a 25 frames/s stream), ``centred`` padded with black on the right
-    to 552 px, which puts the calibration's principal point (x 276) at the image centre: the camera's height is
-    then known and the tracker undoes heights (the clip itself fits no centred camera and runs without)."""
-    c = json.loads(counts_file.read_text())
-    n = c["frames"]
-    src = counts_file.parent / "input"
-    (out_dir / "input").mkdir()
-    rng = np.random.default_rng(1)
-    for i in range(n):
-        dst = out_dir / "input" / f"in{i + 1:06d}.jpg"
-        if kind == "reversed":
-            dst.symlink_to(src / f"in{n - i:06d}.jpg")
-            continue
-        img = cv2.imread(str(src / f"in{(i - i % 2 if kind == 'repeat' else i) + 1:06d}.jpg"))
-        if kind == "dark":
-            img = np.clip(img * 0.3 + rng.normal(0.0, 4.0, img.shape), 0, 255).astype(np.uint8)
-        elif kind == "centred":
-            img = cv2.copyMakeBorder(img, 0, 0, 0, 232, cv2.BORDER_CONSTANT, value=(0, 0, 0))
-        elif kind == "drift":
-            dx, dy = 20.0 * i / n + 2.0 * np.sin(0.7 * i), 10.0 * i / n + 1.5 * np.cos(0.9 * i)
-            img = cv2.warpAffine(img, np.float32([[1, 0, dx], [0, 1, dy]]), (img.shape[1], img.shape[0]),
-                                 borderMode=cv2.BORDER_REPLICATE)
-        cv2.imwrite(str(dst), img, [cv2.IMWRITE_JPEG_QUALITY, 95])
-    if kind == "centred":
-        c["size"] = [552, 240]
-    if kind == "reversed":
-        c["direction"] = "receding"
-        for lane in c["lanes"]:
-            lane["direction"] = "receding"
-        for x in c["crossings"]:
-            x["frame"] = n - 1 - x["frame"]
-        c["crossings"].sort(key=lambda x: x["frame"])
-    p = out_dir / "counts.json"
-    p.write_text(json.dumps(c))
-    return p
+# the calibration's principal point lies at x 276 of 320 (the frame is likely a crop): 232 black columns on the
+# right put it at the centre, so that the camera is known and heights are undone ("centred")
+CENTRING_PAD_PX = 232
 
 
 @pytest.mark.parametrize("kind", ["reversed", "centred", pytest.param("dark", marks=pytest.mark.slow),
@@ -163,7 +125,8 @@ def test_real_clip_variants_count_within_one_per_lane(counts_file, tmp_path, kin
     speed-dependent shortest headway). Centred: with heights undone (an 8.1 m camera, roofs 1.2 times as fast
     in projection), roofs reported apart from their cars made lane 2 +3 (4 extras) until a feature found
     between the two could join them (PART_MIN_MPS)."""
-    clip = _variant_clip(counts_file, tmp_path, kind)
+    clip = (make_variant(counts_file, tmp_path, "original", pad_right=CENTRING_PAD_PX) if kind == "centred"
+            else make_variant(counts_file, tmp_path, kind))
     site = tmp_path / "site.toml"
     r = CliRunner().invoke(site_from_counts, [str(clip), "--out", str(site)])
     assert r.exit_code == 0, r.output

@@ -21,6 +21,8 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "site-from-counts": ("tools.handcount", "site_from_counts", "Make a site config from a hand-count file."),
     "bench": ("tools.bench", "bench", "Measure frames per second per core and memory."),
     "sweep": ("tools.sweep", "sweep", "Simulate, replay and evaluate many scenes: the accuracy targets' table."),
+    "clip-variants": ("tools.clip_variants", "clip_variants",
+                      "Replay a hand-counted clip changed the ways other footage differs; counts per variant."),
     "install": ("tools.install", "install", "Install the service on this box (systemd unit, config, dirs)."),
     "uninstall": ("tools.install", "uninstall", "Remove the service from this box."),
     "selftest": ("tools.selftest", "selftest", "Prove this box works end to end on a synthetic scene."),
