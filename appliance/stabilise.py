@@ -14,7 +14,9 @@ SEARCH_PX = 12  # search radius around the last offset (per-frame shake plus dri
 NCC_OK = 0.6  # below this a fiducial counts as occluded in this frame
 AUTO_COUNT = 8
 AUTO_SPACING_PX = 32
-AUTO_CHECK_FRAMES = 10  # auto-picked fiducials must match well in all of the first frames
+AUTO_CHECK_FRAMES = 10  # auto-picked fiducials must agree with the others in most of the first frames
+MIN_AGREE = 2  # fiducials that must agree on a shift for it to be taken (while that many are usable)
+LONE_STEP_PX = 1.0
 AUTO_MIN_EIG = 0.01
 # The first frame carries its own shake: the shift of the camera's rest position from it is the intercept of a
 # straight line (rest position plus steady drift) through the shifts of the first REST_FRAMES frames, applied
@@ -87,6 +89,8 @@ class Stabiliser:
                 keep.append((xi, yi))
         self.points = np.array(keep, dtype=np.float64).reshape(-1, 2)
         self.usable = np.ones(len(keep), np.bool_)
+        self._misses = np.zeros(len(keep), np.int64)  # first frames an auto-picked point disagreed in ...
+        self._checks = np.zeros(len(keep), np.int64)  # ... and matched in
         self.last_ncc = np.zeros(len(keep))
         self.ok = np.zeros(len(keep), np.bool_)
 
@@ -124,11 +128,20 @@ class Stabiliser:
             med = np.median(disp[good], axis=0)
             # a fiducial disagreeing with the others by more than 1.5 px is moving or mismatched
             agree = good & (np.abs(disp - med).max(axis=1) <= 1.5)
-            if agree.any():
+            # one fiducial alone has nothing to check it against: a false match (rain streaks over its patch)
+            # moved the offset and the next search with it, and it ran away by 100 px on a fixed camera. Where
+            # it is the only one usable, it may move the offset by LONE_STEP_PX a frame at most.
+            if agree.sum() >= MIN_AGREE:
                 self.raw = disp[agree].mean(axis=0)
+            elif agree.any() and self.usable.sum() < MIN_AGREE:
+                self.raw = self.raw + np.clip(disp[agree].mean(axis=0) - self.raw, -LONE_STEP_PX, LONE_STEP_PX)
             if self.auto and self.frames <= AUTO_CHECK_FRAMES:
-                # auto-picked points that match elsewhere than the others are not static: drop them
-                self.usable &= ~good | agree
+                # auto-picked points that match elsewhere than the others in most of the first frames are not
+                # static: drop them (one frame's mismatch is noise: a streak, a passing shadow)
+                self._misses += good & ~agree
+                self._checks += good
+                if self.frames == AUTO_CHECK_FRAMES:
+                    self.usable &= ~(2 * self._misses > self._checks)
             self.ok = agree
         self._settle()
         self.offset = self.raw - self.rest

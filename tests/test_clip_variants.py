@@ -23,6 +23,7 @@ def tiny_clip(tmp_path):
     counts = {"fps": 25.0, "frames": 10, "size": [64, 48], "direction": "approaching",
               "lanes": [{"id": 1, "direction": "approaching", "polygon_px": [[10, 5], [30, 5], [40, 47], [0, 47]]}],
               "count_line_px": [[0, 30], [63, 30]],
+              "loop_occupancy": {"lanes": [{"lane": 1, "polygon_px": [[8, 34], [36, 34], [34, 26], [10, 26]]}]},
               "crossings": [{"frame": 4, "lane": 1}, {"frame": 7, "lane": 1}],
               "calibration": {"image_px": [[10, 40], [50, 40], [20, 10], [40, 10]],
                               "road_m": [[0, 0], [3.5, 0], [0, 20], [3.5, 20]], "homography_img_to_road": [[1]]}}
@@ -38,6 +39,7 @@ def test_geometry_and_frames_follow_each_variant(tiny_clip, tmp_path):
     up = json.loads(make_variant(tiny_clip, tmp_path / "up2", "up2").read_text())
     assert up["size"] == [128, 96] and up["count_line_px"] == [[0, 60], [126, 60]]
     assert up["calibration"]["image_px"][0] == [20, 80] and "homography_img_to_road" not in up["calibration"]
+    assert up["loop_occupancy"]["lanes"][0]["polygon_px"][0] == [16, 68]
     assert cv2.imread(str(tmp_path / "up2" / "input" / "in000001.jpg")).shape == (96, 128, 3)
 
     rev = json.loads(make_variant(tiny_clip, tmp_path / "rev", "reversed").read_text())

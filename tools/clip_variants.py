@@ -111,6 +111,9 @@ def make_variant(counts_file: Path, out_dir: Path, kind: str, pad_right: int = 0
         c["count_line_px"] = _scaled(c["count_line_px"], s)
         c["calibration"]["image_px"] = _scaled(c["calibration"]["image_px"], s)
         c["calibration"].pop("homography_img_to_road", None)
+        for zone in (c.get("loop_occupancy") or {}).get("lanes", []):
+            if "polygon_px" in zone:
+                zone["polygon_px"] = _scaled(zone["polygon_px"], s)
     c["size"] = [round(c["size"][0] * s) + round(pad_right * s), round(c["size"][1] * s)]
     if kind == "fps15":
         where = {i: k for k, i in enumerate(keep)}
