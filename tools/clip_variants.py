@@ -9,7 +9,6 @@ into TAG.sqlite.
 from __future__ import annotations
 
 import json
-import subprocess
 import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -20,6 +19,7 @@ import numpy as np
 
 from tools.evaluate import compare_with_counts, load_results
 from tools.handcount import HandCountError, load_counts
+from tools.sweep import run_logged
 
 KINDS = {
     "original": "the clip as it is (with --pad-right: only padded)",
@@ -37,7 +37,8 @@ KINDS = {
     "up4": "four times the size (an HD camera, worked at the working width)",
     "half": "half the size (a low-resolution camera)",
 }
-DEFAULT_KINDS = ("original", "reversed", "dark", "drift", "repeat", "fps15", "interlace", "jpeg", "blur", "rain", "up2", "up4")
+DEFAULT_KINDS = ("original", "reversed", "dark", "drift", "repeat", "fps15", "interlace", "jpeg", "blur", "rain", "up2",
+                 "up4")
 SCALE = {"up2": 2.0, "up4": 4.0, "half": 0.5}
 MAX_LANE_DIFF = 1  # the real-clip target
 
@@ -146,10 +147,7 @@ def _run_variant(counts_file: Path, work: Path, kind: str, pad_right: int, tag: 
     for what, cmd in (("site-from-counts", ["site-from-counts", str(counts_path), "--out", str(site)]),
                       ("replay", ["replay", str(d / "input" / "in%06d.jpg"), "--config", str(site), "--fps",
                                   str(counts.get("fps", 25.0)), "--out", str(out), "--vehicles"])):
-        with open(d / f"{tag}.{what}.log", "w") as log:
-            r = subprocess.run(roadwatch + cmd, stdout=log, stderr=subprocess.STDOUT)
-        if r.returncode != 0:
-            raise click.ClickException(f"{kind}: {what} failed (exit {r.returncode}); see {d / f'{tag}.{what}.log'}")
+        run_logged(f"{kind}: {what}", roadwatch + cmd, d / f"{tag}.{what}.log")
     cmp = compare_with_counts(counts, load_results(out)["crossings"])
     return {"kind": d.name, "lanes": {int(k): v for k, v in cmp.per_lane.items()}}
 
@@ -165,7 +163,8 @@ def _run_variant(counts_file: Path, work: Path, kind: str, pad_right: int, tag: 
                    "variants are built into WORK/pPX-KIND.")
 @click.option("--tag", default="results", show_default=True, help="Name of this run's files.")
 @click.option("-j", "--jobs", type=click.IntRange(min=1), default=1, show_default=True, help="Variants in parallel.")
-@click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path), help="Also write the rows as JSON.")
+@click.option("--json", "json_out", type=click.Path(dir_okay=False, path_type=Path),
+              help="Also write the rows as JSON.")
 def clip_variants(counts_path: Path, work: Path, kinds: str, pad_right: int, tag: str, jobs: int,
                   json_out: Path | None) -> None:
     """Replay a hand-counted clip changed the ways other sites' footage differs; per-lane counts against the
@@ -192,8 +191,9 @@ def clip_variants(counts_path: Path, work: Path, kinds: str, pad_right: int, tag
     for r in rows:
         bad = any(abs(v["result"] - v["hand"]) > MAX_LANE_DIFF for v in r["lanes"].values())
         fails += bad
-        click.echo(f"{r['kind']:14s} " + "  ".join(f"{'':7s}{v['hand']:4d} {v['result']:6d} {v['result'] - v['hand']:+4d}"
-                                                 for _, v in sorted(r["lanes"].items())) + ("  FAIL" if bad else ""))
+        cells = (f"{'':7s}{v['hand']:4d} {v['result']:6d} {v['result'] - v['hand']:+4d}"
+                 for _, v in sorted(r["lanes"].items()))
+        click.echo(f"{r['kind']:14s} " + "  ".join(cells) + ("  FAIL" if bad else ""))
     click.echo(f"{len(rows) - fails} of {len(rows)} variants within {MAX_LANE_DIFF} vehicle of the hand count in "
                f"every lane")
     if json_out:

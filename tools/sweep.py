@@ -40,7 +40,8 @@ class Scene:
         return f"{self.preset}-s{self.seed}"
 
 
-def _run(what: str, cmd: list[str], log: Path) -> None:
+def run_logged(what: str, cmd: list[str], log: Path) -> None:
+    """Run a command with its output in a log file; a failure names what failed and the log."""
     with open(log, "w") as f:
         r = subprocess.run(cmd, stdout=f, stderr=subprocess.STDOUT)
     if r.returncode != 0:
@@ -59,15 +60,16 @@ def _prepare(scene: Scene, seconds: float, tag: str, size: tuple[int, int] = (64
             raise click.ClickException(f"{scene.dir} holds a {had[0]} s {had[1][0]}x{had[1][1]} scene, not "
                                        f"{seconds:g} s {size[0]}x{size[1]}: use another --work")
     else:
-        _run(f"simulating {scene.name}", roadwatch + ["simulate", "--preset", scene.preset, "--seed", str(scene.seed),
-                                                      "--seconds", str(seconds), "--out", str(scene.dir), "--quiet",
-                                                      "--width", str(size[0]), "--height", str(size[1])],
-             scene.dir / "simulate.log")
+        run_logged(f"simulating {scene.name}",
+                   roadwatch + ["simulate", "--preset", scene.preset, "--seed", str(scene.seed), "--seconds",
+                                str(seconds), "--out", str(scene.dir), "--quiet", "--width", str(size[0]), "--height",
+                                str(size[1])],
+                   scene.dir / "simulate.log")
     out = scene.dir / f"{tag}.sqlite"
     out.unlink(missing_ok=True)
-    _run(f"replaying {scene.name}", roadwatch + ["replay", str(scene.dir / "video.mp4"), "--config",
-                                                 str(scene.dir / "site.toml"), "--out", str(out), "--vehicles"],
-         scene.dir / f"{tag}.log")
+    run_logged(f"replaying {scene.name}", roadwatch + ["replay", str(scene.dir / "video.mp4"), "--config",
+                                                       str(scene.dir / "site.toml"), "--out", str(out), "--vehicles"],
+               scene.dir / f"{tag}.log")
     return out
 
 
