@@ -112,6 +112,11 @@ RECHECK_DRIFT_M = 1.5  # ... at a steady place on it (this much drift: a separat
 # ... as an elevated part at least this much faster (roof fragments: 1.15-1.5; a receding vehicle's speed
 # may read a few per cent low, and a level part is a queued car's business)
 RECHECK_K_MIN = 1.12
+# A part still gathering votes when it or its vehicle leaves the view (the exit zone, near the image's edge, comes
+# before RECHECK_VOTES frames) is taken as that vehicle's if it had matched it this many frames at a steady place,
+# the last this recently:
+ORPHAN_VOTES = 3
+ORPHAN_GAP_S = 0.2
 MAX_HEIGHT_M = 4.5  # the tallest vehicle: bounds the height magnification of a fragment
 SPEED_WINDOW_S = 0.5  # speeds compared for the height magnification are averaged over this long
 # Reported length: each feature's place on the road behind the near end, from a straight-line fit of its
@@ -612,6 +617,7 @@ class VehicleTrack:
     own_length: float = 0.0  # the group's length before fragments joined it
     merged: bool = False
     votes: tuple[int, int, float] = (0, 0, 0.0)  # (candidate host, frames it matched, place on it)
+    vote_t: float = -np.inf  # when it last matched the candidate host
     watch_host: int = 0  # a vehicle this new group may be an elevated part of (see Grouper._watched) ...
     watch: list[tuple[float, float, bool]] = field(default_factory=list)  # ... (t, speed ratio, matched it)
     shadow_tests: tuple[float, int, int] | None = None  # (first test's time, frames tested, frames found
@@ -859,7 +865,9 @@ class Grouper:
             if lz is not None and lz.in_exit(float(s[rep, 1])):
                 self.tracks.pop(vid)
                 retire.append(members)
-                if tr.reported:
+                if self._orphaned_part(tr, t):
+                    self.merged_now.add(vid)
+                elif tr.reported:
                     out.append(self._finish(tr, exited=True))
                 continue
             if tr.reported and t - tr.report_t > RECHECK_S:
@@ -879,6 +887,7 @@ class Grouper:
                 same = tr.votes[0] == host and abs(off - tr.votes[2]) <= RECHECK_DRIFT_M
                 n = tr.votes[1] + 1 if same else 1
                 tr.votes = (host, n, tr.votes[2] if same else off)
+                tr.vote_t = t
                 if n < RECHECK_VOTES:
                     out.append(st)
                     continue
@@ -1149,10 +1158,19 @@ class Grouper:
     def _lose(self, tr: VehicleTrack, t: float, out: list[VehicleState]) -> None:
         """A vehicle's features are gone: it is finished if it had left its detection zone, else remembered
         where it was lost (it may be found again as a new group)."""
-        if self._qualifies_on_loss(tr):
+        if self._orphaned_part(tr, t):
+            self.merged_now.add(tr.id)
+        elif self._qualifies_on_loss(tr):
             out.append(self._finish(tr, exited=False))
         elif tr.reported and tr.trajectory:
             self.lost.append((t, tr.lane_index, tr.trajectory[-1][2], abs(tr.last.vy) if tr.last else 0.0))
+
+    def _orphaned_part(self, tr: VehicleTrack, t: float) -> bool:
+        """Whether a young reported group ending now (exited or lost) is a part of another vehicle: its report
+        still on recheck, it was gathering votes to join that vehicle (ORPHAN_VOTES of them at least, at one place
+        on it) when one of them left the view: the last vote within ORPHAN_GAP_S, or that vehicle gone since. Its report is then never released."""
+        return (tr.reported and t - tr.report_t <= RECHECK_S and tr.votes[1] >= ORPHAN_VOTES
+                and (t - tr.vote_t <= ORPHAN_GAP_S or tr.votes[0] not in self.tracks))
 
     def _retire_quietly(self, vid: int, members: np.ndarray, retire: list[np.ndarray]) -> None:
         """End a group that is no vehicle of its own: never finalised, its held report never released (the

@@ -19,6 +19,8 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
     "replay": ("tools.replay", "replay", "Run the pipeline on a video file or image sequence."),
     "evaluate": ("tools.evaluate", "evaluate", "Compare results with ground truth or hand counts."),
     "site-from-counts": ("tools.handcount", "site_from_counts", "Make a site config from a hand-count file."),
+    "counts-from-sim": ("tools.counts_from_sim", "counts_from_sim",
+                        "Write a simulated scene as a hand-counted clip (frames and counts.json)."),
     "bench": ("tools.bench", "bench", "Measure frames per second per core and memory."),
     "sweep": ("tools.sweep", "sweep", "Simulate, replay and evaluate many scenes: the accuracy targets' table."),
     "clip-variants": ("tools.clip_variants", "clip_variants",

@@ -7,6 +7,7 @@ import os
 from pathlib import Path
 
 import click
+import cv2
 import numpy as np
 
 from appliance.config import ConfigError, parse_site
@@ -47,18 +48,14 @@ def site_dict_from_counts(counts: dict, counts_path: str | Path, out_path: str |
         H = Homography.from_points(cal["image_px"], cal["road_m"])
     except (KeyError, ValueError) as e:
         raise HandCountError(f"calibration: {e}") from None
-    (x1, y1), (x2, y2) = counts["count_line_px"]
     width, height = (int(v) for v in counts["size"])
     lanes = []
     for i, ln in enumerate(counts["lanes"]):
         poly = np.asarray(ln["polygon_px"], dtype=np.float64)
-        # the count line at the lane's centre column on that line
-        row = 0.5 * (y1 + y2)
-        xs = _polygon_row_span(poly, row)
-        if xs is None:
-            raise HandCountError(f"lanes[{i}]: the count line (row {row:.0f}) does not cross this lane")
-        xc = 0.5 * (xs[0] + xs[1])
-        yc = y1 + (y2 - y1) * ((xc - x1) / (x2 - x1) if x2 != x1 else 0.0)
+        where = count_point(poly, counts["count_line_px"])
+        if where is None:
+            raise HandCountError(f"lanes[{i}]: the count line {counts['count_line_px']} does not cross this lane")
+        xc, yc = where
         count_y = float(H.img_to_road([[xc, yc]])[0, 1])
         lanes.append({
             "id": int(ln["id"]),
@@ -88,14 +85,33 @@ def site_dict_from_counts(counts: dict, counts_path: str | Path, out_path: str |
     }
 
 
-def _polygon_row_span(poly: np.ndarray, row: float) -> tuple[float, float] | None:
-    xs = []
+def count_point(poly: np.ndarray, line: list) -> tuple[float, float] | None:
+    """Where the count line crosses a lane: the middle of the part of the line segment inside the lane
+    polygon (image pixels), or None when it misses the lane. The line may slant across the lanes."""
+    a, b = np.asarray(line, dtype=np.float64)
+    d = b - a
+    ts = []
     n = len(poly)
     for i in range(n):
-        (ax, ay), (bx, by) = poly[i], poly[(i + 1) % n]
-        if (ay - row) * (by - row) <= 0 and ay != by:
-            xs.append(ax + (row - ay) * (bx - ax) / (by - ay))
-    return (min(xs), max(xs)) if len(xs) >= 2 else None
+        p, q = poly[i], poly[(i + 1) % n]
+        e = q - p
+        den = d[0] * e[1] - d[1] * e[0]
+        if abs(den) < 1e-12:
+            continue
+        w = p - a
+        t = (w[0] * e[1] - w[1] * e[0]) / den
+        u = (w[0] * d[1] - w[1] * d[0]) / den
+        if 0.0 <= u <= 1.0:
+            ts.append(t)
+    inside = [t for t in ts if 0.0 <= t <= 1.0]
+    if cv2.pointPolygonTest(poly.astype(np.float32), (float(a[0]), float(a[1])), False) >= 0:
+        inside.append(0.0)
+    if cv2.pointPolygonTest(poly.astype(np.float32), (float(b[0]), float(b[1])), False) >= 0:
+        inside.append(1.0)
+    if len(inside) < 2 or max(inside) - min(inside) < 1e-9:
+        return None
+    t = 0.5 * (min(inside) + max(inside))
+    return float(a[0] + t * d[0]), float(a[1] + t * d[1])
 
 
 def image_source_path(site_url: str, site_path: str | Path) -> str:
