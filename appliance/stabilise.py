@@ -17,7 +17,12 @@ AUTO_SPACING_PX = 32
 AUTO_CHECK_FRAMES = 10  # auto-picked fiducials must agree with the others in most of the first frames
 MIN_AGREE = 2  # fiducials that must agree on a shift for it to be taken (while that many are usable)
 LONE_STEP_PX = 1.0
-AUTO_MIN_EIG = 0.01
+# An auto-picked point's corner score (cornerMinEigenVal) must reach AUTO_NOISE_FACTOR times the frame's median
+# score (its noise and fine texture) and AUTO_REL_SCORE times its strongest corners' (the 99.9th percentile): the
+# scores scale with contrast squared, so an absolute bar picked nothing in dark, dusky, rainy or soft frames
+AUTO_NOISE_FACTOR = 8.0
+AUTO_REL_SCORE = 0.25
+AUTO_MIN_EIG = 1e-4  # (a flat frame has nothing to pick)
 # The first frame carries its own shake: the shift of the camera's rest position from it is the intercept of a
 # straight line (rest position plus steady drift) through the shifts of the first REST_FRAMES frames, applied
 # from REST_MIN_FRAMES on and at most REST_STEP_PX per frame, so tracked features never see it as motion.
@@ -59,6 +64,8 @@ class Stabiliser:
         h, w = img.shape
         keep_out = cv2.dilate((self.lane_image > 0).astype(np.uint8), np.ones((21, 21), np.uint8))
         score = cv2.cornerMinEigenVal(img, 7, 3)
+        bar = max(AUTO_NOISE_FACTOR * float(np.median(score)), AUTO_REL_SCORE * float(np.percentile(score, 99.9)),
+                  AUTO_MIN_EIG)
         m = SEARCH_PX + TEMPLATE_PX
         score[keep_out > 0] = 0
         score[:m, :] = 0
@@ -69,7 +76,7 @@ class Stabiliser:
         order = np.argsort(-score, axis=None)[:5000]
         for flat in order:
             y, x = divmod(int(flat), w)
-            if score[y, x] < AUTO_MIN_EIG:
+            if score[y, x] < bar:
                 break
             if all(abs(x - px) >= AUTO_SPACING_PX or abs(y - py) >= AUTO_SPACING_PX for px, py in picked):
                 picked.append((float(x), float(y)))

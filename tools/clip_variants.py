@@ -27,6 +27,7 @@ KINDS = {
     "dark": "30 % brightness with sensor noise",
     "dusk": "gamma 2.2 at 60 %, strong sensor noise",
     "drift": "the picture shifting 20 px right and 10 px down over the clip, with 2 px of wind shake",
+    "dark-drift": "dark and drifting together (a windy night)",
     "repeat": "every other frame a repeat (half-rate footage in a full-rate stream)",
     "fps15": "15 frames/s: frames dropped from the clip's rate",
     "interlace": "each frame's odd rows from the frame before (a field apart)",
@@ -37,8 +38,8 @@ KINDS = {
     "up4": "four times the size (an HD camera, worked at the working width)",
     "half": "half the size (a low-resolution camera)",
 }
-DEFAULT_KINDS = ("original", "reversed", "dark", "drift", "repeat", "fps15", "interlace", "jpeg", "blur", "rain", "up2",
-                 "up4")
+DEFAULT_KINDS = ("original", "reversed", "dark", "drift", "dark-drift", "repeat", "fps15", "interlace", "jpeg", "blur",
+                 "rain", "up2", "up4")
 SCALE = {"up2": 2.0, "up4": 4.0, "half": 0.5}
 MAX_LANE_DIFF = 1  # the real-clip target
 
@@ -80,14 +81,14 @@ def make_variant(counts_file: Path, out_dir: Path, kind: str, pad_right: int = 0
         if s != 1.0:
             img = cv2.resize(img, (round(img.shape[1] * s), round(img.shape[0] * s)),
                              interpolation=cv2.INTER_CUBIC if s > 1 else cv2.INTER_AREA)
-        if kind == "dark":
-            img = np.clip(img * 0.3 + rng.normal(0.0, 4.0, img.shape), 0, 255).astype(np.uint8)
-        elif kind == "dusk":
-            img = np.clip(255 * (img / 255.0) ** 2.2 * 0.6 + rng.normal(0, 6, img.shape), 0, 255).astype(np.uint8)
-        elif kind == "drift":
+        if kind in ("drift", "dark-drift"):
             dx, dy = 20.0 * i / n + 2.0 * np.sin(0.7 * i), 10.0 * i / n + 1.5 * np.cos(0.9 * i)
             img = cv2.warpAffine(img, np.float32([[1, 0, dx], [0, 1, dy]]), (img.shape[1], img.shape[0]),
                                  borderMode=cv2.BORDER_REPLICATE)
+        if kind in ("dark", "dark-drift"):
+            img = np.clip(img * 0.3 + rng.normal(0.0, 4.0, img.shape), 0, 255).astype(np.uint8)
+        elif kind == "dusk":
+            img = np.clip(255 * (img / 255.0) ** 2.2 * 0.6 + rng.normal(0, 6, img.shape), 0, 255).astype(np.uint8)
         elif kind == "interlace":
             cur = img.copy()
             if prev is not None:
