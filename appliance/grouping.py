@@ -1168,7 +1168,8 @@ class Grouper:
     def _orphaned_part(self, tr: VehicleTrack, t: float) -> bool:
         """Whether a young reported group ending now (exited or lost) is a part of another vehicle: its report
         still on recheck, it was gathering votes to join that vehicle (ORPHAN_VOTES of them at least, at one place
-        on it) when one of them left the view: the last vote within ORPHAN_GAP_S, or that vehicle gone since. Its report is then never released."""
+        on it) when one of the two left the view (its last vote within ORPHAN_GAP_S, or that vehicle gone since).
+        Its report is then never released."""
         return (tr.reported and t - tr.report_t <= RECHECK_S and tr.votes[1] >= ORPHAN_VOTES
                 and (t - tr.vote_t <= ORPHAN_GAP_S or tr.votes[0] not in self.tracks))
 

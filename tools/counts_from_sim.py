@@ -120,6 +120,7 @@ def counts_from_sim(sim_dir: Path, out_dir: Path, click_noise: float, seed: int)
     if n != counts["frames"]:
         raise click.ClickException(f"{sim_dir / 'video.mp4'}: {n} frames decoded, the truth has {counts['frames']}")
     (out_dir / "counts.json").write_text(json.dumps(counts, indent=1))
-    per_lane = {ln["id"]: sum(c["lane"] == ln["id"] for c in counts["crossings"]) for ln in counts["lanes"]}
+    per_lane = ", ".join(f"lane {ln['id']}: {sum(c['lane'] == ln['id'] for c in counts['crossings'])}"
+                         for ln in counts["lanes"])
     click.echo(f"wrote {out_dir / 'counts.json'} ({n} frames in {out_dir / 'input'}): count line at row "
-               f"{counts['count_line_px'][0][1]:g}, crossings " + ", ".join(f"lane {k}: {v}" for k, v in per_lane.items()))
+               f"{counts['count_line_px'][0][1]:g}, crossings {per_lane}")
