@@ -24,8 +24,9 @@ from tools.handcount import HandCountError, count_point, site_dict_from_counts
 JPEG_QUALITY = 90
 
 
-def counts_dict(sim: Path, noise_px: float = 0.0, seed: int = 1) -> dict:
-    """The hand-count file's content for a simulated scene directory (site.toml, truth/)."""
+def counts_dict(sim: Path, noise_px: float = 0.0, seed: int = 1, row: float | None = None) -> dict:
+    """The hand-count file's content for a simulated scene directory (site.toml, truth/). The count line runs
+    across the image at ``row`` (pixels), by default the median row of the simulator's count positions."""
     site = load_site(sim / "site.toml")
     meta = json.loads((sim / "truth" / "meta.json").read_text())
     w, h = int(meta["width"]), int(meta["height"])
@@ -37,7 +38,9 @@ def counts_dict(sim: Path, noise_px: float = 0.0, seed: int = 1) -> dict:
         lanes.append({"id": lane.id, "direction": lane.direction, "polygon_px": np.round(poly, 1).tolist()})
         centre = np.mean(np.asarray(lane.polygon_m, dtype=np.float64)[:, 0])
         rows.append(float(site.homography.road_to_img([[centre, lane.count_y_m]])[0, 1]))
-    row = round(float(np.median(rows)), 1)
+    row = round(float(np.median(rows)) if row is None else float(row), 1)
+    if not 0.0 <= row <= h - 1.0:
+        raise HandCountError(f"count row {row:g} is outside the {h}-row image")
     line = [[0.0, row], [w - 1.0, row]]
     cal = site.calibration
     rng = np.random.default_rng(seed)
@@ -99,7 +102,9 @@ def write_frames(video: Path, out_dir: Path) -> int:
 @click.option("--click-noise", type=click.FloatRange(min=0), default=0.0, show_default=True, metavar="PX",
               help="Standard deviation of the calibration points' click error (pixels).")
 @click.option("--seed", type=int, default=1, show_default=True, help="Seed of the click noise.")
-def counts_from_sim(sim_dir: Path, out_dir: Path, click_noise: float, seed: int) -> None:
+@click.option("--count-row", type=float, default=None, metavar="PX",
+              help="Image row of the count line (default: the median row of the simulator's count positions).")
+def counts_from_sim(sim_dir: Path, out_dir: Path, click_noise: float, seed: int, count_row: float | None) -> None:
     """Write a simulated scene (roadwatch simulate --out SIM_DIR) as a hand-counted clip.
 
     \b
@@ -111,10 +116,12 @@ def counts_from_sim(sim_dir: Path, out_dir: Path, click_noise: float, seed: int)
       roadwatch evaluate --counts clip/counts.json --results clip/res.sqlite
     """
     try:
-        counts = counts_dict(sim_dir, click_noise, seed)
+        counts = counts_dict(sim_dir, click_noise, seed, count_row)
         counts["crossings"] = crossings_of(counts, sim_dir)
-    except (ConfigError, HandCountError, FileNotFoundError, KeyError) as e:
+    except (ConfigError, FileNotFoundError, KeyError) as e:
         raise click.ClickException(f"{sim_dir}: not a simulated scene roadwatch can read ({e})") from None
+    except HandCountError as e:
+        raise click.ClickException(f"{sim_dir}: {e}") from None
     out_dir.mkdir(parents=True, exist_ok=True)
     n = write_frames(sim_dir / "video.mp4", out_dir)
     if n != counts["frames"]:
