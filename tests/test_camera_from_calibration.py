@@ -15,9 +15,8 @@ from tools.simulate.camera import Camera
 ROAD = np.array([(x, y) for y in (15.0, 45.0, 90.0) for x in (-3.5, 0.0, 3.5)])
 
 
-def _clicked(cam: Camera, sigma_px: float, rng: np.random.Generator, shift_x: float = 0.0) -> Homography:
+def _clicked(cam: Camera, sigma_px: float, rng: np.random.Generator) -> Homography:
     img = cam.road_to_image(ROAD) + rng.normal(0.0, sigma_px, (len(ROAD), 2))
-    img[:, 0] -= shift_x
     return Homography.from_points(img, ROAD)
 
 

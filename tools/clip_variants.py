@@ -188,13 +188,14 @@ def clip_variants(counts_path: Path, work: Path, kinds: str, pad_right: int, tag
     with ThreadPoolExecutor(max_workers=jobs) as pool:
         rows = list(pool.map(lambda k: _run_variant(counts_path, work, k, pad_right, tag), names))
     fails = 0
-    click.echo(f"{'variant':14s} " + "  ".join(f"lane {lane}: hand result diff" for lane in sorted(rows[0]['lanes'])))
+    width = max(len("variant"), *(len(r["kind"]) for r in rows))
+    click.echo(f"{'variant':{width}s} " + "  ".join(f"lane {lane}: hand result diff" for lane in sorted(rows[0]['lanes'])))
     for r in rows:
         bad = any(abs(v["result"] - v["hand"]) > MAX_LANE_DIFF for v in r["lanes"].values())
         fails += bad
         cells = (f"{'':7s}{v['hand']:4d} {v['result']:6d} {v['result'] - v['hand']:+4d}"
                  for _, v in sorted(r["lanes"].items()))
-        click.echo(f"{r['kind']:14s} " + "  ".join(cells) + ("  FAIL" if bad else ""))
+        click.echo(f"{r['kind']:{width}s} " + "  ".join(cells) + ("  FAIL" if bad else ""))
     click.echo(f"{len(rows) - fails} of {len(rows)} variants within {MAX_LANE_DIFF} vehicle of the hand count in "
                f"every lane")
     if json_out:
