@@ -221,8 +221,10 @@ def test_real_clip_calibration_from_hand_marked_points(tmp_path, shared_data) ->
     # the hand-marked points of this clip fit to ~0.1 m (counts.json lists its residuals);
     # 0.3 m is the level above which a marking was clearly mis-clicked
     assert data["mean_error_m"] < 0.3 and data["warnings"] == []
-    # its frame is likely a crop (principal point at x 276): the installer learns that heights go uncorrected
-    assert any("no camera on a pole or overpass" in n for n in data["notes"]), data["notes"]
+    # its frame is likely a crop (principal point at x 276 of 320): the installer learns that, and that heights go
+    # uncorrected
+    note = next(n for n in data["notes"] if "column" in n)
+    assert "column 276" in note and "without vehicle heights" in note, note
     img = cv2.imread(str(out))
     assert img.shape == (240, 320, 3) and img.std() > 20  # drawn on the real frame, not on a blank
     saved = tomllib.loads(p.read_text())

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from appliance.geometry import CalibrationError, Homography
-from appliance.zones import camera_from_homography
+from appliance.zones import camera_from_homography, placed_camera
 
 PLAUSIBLE_POINT_ERROR_M = 0.5
 
@@ -194,14 +194,20 @@ def check(
         mpp = H.metres_per_pixel(probe)[0]
         if not 0.002 < mpp.max() < 1.0:
             warnings.append(f"implausible scale at the image bottom: {mpp.max():.3f} m per pixel")
-        cam = camera_from_homography(H, w, h)
+        cam, placed = camera_from_homography(H, w, h), placed_camera(H, w, h)
         if cam is not None:
             notes.append(f"camera about {cam[2]:.1f} m above the road, its foot at X {cam[0]:.1f} m, Y {cam[1]:.1f} m: "
                          "the tracker undoes vehicle heights")
+        elif placed is not None:
+            notes.append(f"a camera about {placed[2]:.1f} m above the road fits only with its lens's axis at column "
+                         f"{placed[3]:.0f}, not the frame's centre ({(w - 1) / 2:.0f}): a frame cropped from a wider "
+                         "picture (or an along-road scale somewhat out). The tracker works without vehicle heights, "
+                         "so roofs may be reported apart from their vehicles and lengths read long; the uncropped "
+                         "picture avoids that")
         else:
-            notes.append("no camera on a pole or overpass with its principal point at the image centre fits this "
-                         "calibration (a cropped frame?): the tracker works without vehicle heights, so roofs may "
-                         "be reported apart from their vehicles and lengths read long")
+            notes.append("no camera on a pole or overpass fits this calibration (an along-road scale far out?): the "
+                         "tracker works without vehicle heights, so roofs may be reported apart from their vehicles "
+                         "and lengths read long")
     # the file form: the given points, plus lane-line points with their fitted road positions
     out_img = [list(map(float, p)) for p in img]
     out_road = [list(map(float, p)) for p in road]
