@@ -74,16 +74,18 @@ class CornerDetector:
         _, m = cv2.threshold(diff, MOTION_LEVEL, 255, cv2.THRESH_BINARY)
         return cv2.dilate(m, self.kernel)
 
-    def detect(self, img: np.ndarray, prev: np.ndarray | None, live_px: np.ndarray, shift: tuple[int, int] = (0, 0)) -> np.ndarray:
+    def detect(self, img: np.ndarray, prev: np.ndarray | None, live_px: np.ndarray, shift: tuple[int, int] = (0, 0),
+               zone: tuple[tuple[int, int, int, int], np.ndarray] | None = None) -> np.ndarray:
         """New corner positions (N, 2) in full-image pixels, best first. ``shift`` moves the zones with
-        the camera (integer px)."""
-        x0, y0, x1, y1 = self.roi
+        the camera (integer px); ``zone`` (ROI, its mask) searches there instead of the detection zones."""
+        x0, y0, x1, y1 = self.roi if zone is None else zone[0]
+        zone_mask = self.zone_mask if zone is None else zone[1]
         sx, sy = shift
         h, w = img.shape
         x0s, x1s = min(max(0, x0 + sx), w - 1), min(max(1, x1 + sx), w)
         y0s, y1s = min(max(0, y0 + sy), h - 1), min(max(1, y1 + sy), h)
         cur = img[y0s:y1s, x0s:x1s]
-        mask = self.zone_mask[y0s - y0 - sy : y1s - y0 - sy, x0s - x0 - sx : x1s - x0 - sx]
+        mask = zone_mask[y0s - y0 - sy : y1s - y0 - sy, x0s - x0 - sx : x1s - x0 - sx]
         if mask.shape != cur.shape or cur.size == 0:
             return np.zeros((0, 2))
         if prev is not None:

@@ -417,6 +417,11 @@ class TrafficMeasures:
             return None
         sign = self.lanes.sign[lane]
         speed = float(np.median(tr.speeds[-CARRY_SPEED_STATES:]))
+        life = v.t - tr.first_t
+        if len(tr.speeds) < 2 * CARRY_SPEED_STATES and life > 0.0:
+            # a young vehicle's speeds may not have settled (one first seen mid-view, when an occluder uncovered
+            # it): it drives on no slower than it came
+            speed = max(speed, abs(v.y_front - tr.first_y) / life)
         if v.vy * sign <= 0 or speed < CARRY_MIN_SPEED:
             return None
         ylo, yhi = self.region[lane]

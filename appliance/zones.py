@@ -115,6 +115,11 @@ class SiteZones:
         self.camera = camera_from_homography(H, self.width, self.height)
         self.lane_image = self._paint("polygon_px")  # 0 = no lane, else LaneZones.index
         self.detection_image = self._paint("detection_px")
+        # where a vehicle hidden behind another may first be seen: each lane past its detection zone, short of its
+        # exit zone (see VisionPipeline._revealed)
+        exits = self._paint("exit_px")
+        self.reveal_images = [np.where((self.lane_image == lz.index) & (self.detection_image == 0) & (exits == 0),
+                                       255, 0).astype(np.uint8) for lz in self.lanes]
         ys, xs = np.nonzero(self.detection_image)
         if len(xs) == 0:
             raise ValueError("no detection zone falls inside the image")

@@ -477,6 +477,20 @@ def test_a_counted_vehicle_lost_inside_the_region_drives_on_to_its_end(lost_at, 
     assert time == pytest.approx(dist / 20.0, abs=0.03)
 
 
+def test_a_young_vehicle_lost_inside_the_region_drives_on_no_slower_than_it_came():
+    """A receding vehicle first seen at 30 m (found when an occluder uncovered it: its features' speeds not yet
+    settled, 2 m/s reported) that came 20 m in 1 s, counted at 40 m and lost at 50 m, drives on to the region's end
+    (80 m) at 20 m/s: d(A) 50 m, t(A) 2.5 s (at its reported speed the 30 m left would take 15 s)."""
+    tm = TrafficMeasures(make_site(loops=[]))
+    for i in range(26):
+        t = i / 25
+        y = 30.0 + 20.0 * t
+        tm.step(t, EPOCH + t, [VehicleState(7, t, 2.5, y, y - 4.5, 0, 2.0, 4.5, 8, finished=i == 25)])
+    d, time = tm.edie.peek(EPOCH)[:, 1]
+    assert d == pytest.approx(50.0, abs=0.5)
+    assert time == pytest.approx(2.5, abs=0.05)
+
+
 def test_a_counted_vehicle_gone_without_a_finish_still_gets_its_record():
     """A group counted at its line that then vanishes unfinished (it joined another group: the grouper never
     finishes it) keeps its count; its per-vehicle record comes once it is forgotten, LOST_AFTER_S later, so

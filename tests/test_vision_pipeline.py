@@ -347,6 +347,35 @@ class OccludedScene(Scene):
         return img
 
 
+def test_corners_are_looked_for_where_a_vehicle_of_the_other_direction_uncovered_the_next_lane():
+    """A receding vehicle (lane 1) that covered the approaching lane 2 beyond its detection zone 0.5 s ago
+    uncovers it there: lane 2's cells it covered are searched for a vehicle it hid, unless a vehicle covers them
+    now, or it covered them longer than REVEAL_S ago; a vehicle of lane 2 itself uncovers nothing."""
+    from appliance.pipeline import REVEAL_CELL_PX, REVEAL_S
+
+    pipe = VisionPipeline(parse_site(site_dict(lanes=(("receding", -3.5, 0.0), ("approaching", 0.0, 3.5)))))
+    lz = pipe.zones.lanes[1]
+    y = 0.5 * (lz.detection_y[0] + lz.count_y)  # past lane 2's detection zone, short of its count line
+    u, v = pipe.zones.H.road_to_img([[1.75, y]])[0] / REVEAL_CELL_PX
+    box = (slice(int(v) - 2, int(v) + 3), slice(int(u) - 2, int(u) + 3))
+
+    def searched(lane: int, when: float, covers=np.zeros((0, 4), np.int32)) -> bool:
+        pipe.covered_t[:] = -np.inf
+        pipe.covered_t[lane][box] = when
+        pipe.covers = covers
+        zone = pipe._revealed(10.0)
+        if zone is None:
+            return False
+        (x0, y0, x1, y1), mask = zone
+        x, y = int(u * REVEAL_CELL_PX), int(v * REVEAL_CELL_PX)
+        return x0 <= x < x1 and y0 <= y < y1 and mask[y - y0, x - x0] > 0
+
+    assert searched(0, 9.5)
+    assert not searched(1, 9.5)  # its own direction
+    assert not searched(0, 10.0 - REVEAL_S - 0.1)  # too long ago
+    assert not searched(0, 9.5, np.array([[int(u) - 1, int(v) - 1, int(u) + 1, int(v) + 1]], np.int32))
+
+
 def test_vehicle_emerging_from_occlusion_is_backfilled_to_the_region_entry(site):
     pipe = VisionPipeline(site)
     sc = OccludedScene(4)
