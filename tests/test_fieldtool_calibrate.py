@@ -201,6 +201,23 @@ def test_grid_png_lines_are_where_the_homography_puts_them(tmp_path) -> None:
     assert COLOURS["checker"][0] > COLOURS["checker"][2]
 
 
+def test_a_frame_cropped_beside_the_lens_axis_is_named() -> None:
+    """A frame cut 150 px right of a wider picture's centre: a centred camera still fits, askew (its foot 1.8 m
+    out along the road), and the installer learns the lens's column and the camera placed from it."""
+    from tools.simulate.camera import Camera
+
+    cam = Camera(height_m=12.0, tilt_deg=16.0, pan_deg=8.5, x_m=9.0)
+    road = np.array(ROAD)
+    img = cam.road_to_image(road) - [150.0, 0.0]
+    res = check(Homography.from_points(img, road), Correspondences(img.tolist(), road.tolist()), (640, 480))
+    note = next(n for n in res.notes if "lens's axis" in n)
+    assert "column 170" in note and "12.0 m up" in note and "X 9.0 m" in note, note
+    # an uncropped frame's calibration says nothing of a column
+    img = cam.road_to_image(road)
+    res = check(Homography.from_points(img, road), Correspondences(img.tolist(), road.tolist()), (640, 480))
+    assert not any("column" in n for n in res.notes), res.notes
+
+
 def test_real_clip_calibration_from_hand_marked_points(tmp_path, shared_data) -> None:
     counts = json.loads((shared_data / "cdnet-highway" / "counts.json").read_text())
     cal = counts["calibration"]

@@ -198,6 +198,11 @@ def check(
         if cam is not None:
             notes.append(f"camera about {cam[2]:.1f} m above the road, its foot at X {cam[0]:.1f} m, Y {cam[1]:.1f} m: "
                          "the tracker undoes vehicle heights")
+            if placed is not None and abs(placed[3] - (w - 1) / 2) > 0.5:
+                notes.append(f"the lens's axis seems to be at column {placed[3]:.0f}, not the frame's centre "
+                             f"({(w - 1) / 2:.0f}): a frame cropped from a wider picture? The camera above, placed "
+                             f"from the centre, is then askew (from the column: {placed[2]:.1f} m up, its foot at X "
+                             f"{placed[0]:.1f} m, Y {placed[1]:.1f} m); the uncropped picture avoids that")
         elif placed is not None:
             notes.append(f"a camera about {placed[2]:.1f} m above the road fits only with its lens's axis at column "
                          f"{placed[3]:.0f}, not the frame's centre ({(w - 1) / 2:.0f}): a frame cropped from a wider "
