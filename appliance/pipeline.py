@@ -111,19 +111,21 @@ class VisionPipeline:
         self.held: dict[int, list[VehicleState]] = {}  # vehicle id -> its states since its first report
         self.offset = (0.0, 0.0)
         self.prev_offset = (0.0, 0.0)  # the stabiliser's offset at self.prev
-        # per lane and grid cell (zone coordinates), when a reported vehicle of that lane last covered it (see
-        # REVEAL_S)
-        h, w = self.zones.height, self.zones.width
-        n = len(self.zones.lanes)
-        self.covered_t = np.full((n, -(-h // REVEAL_CELL_PX), -(-w // REVEAL_CELL_PX)), -np.inf, np.float32)
-        self.covers = np.zeros((0, 4), np.int32)  # the cells reported vehicles cover now (x0, y0, x1, y1)
-        # (lane, neighbouring lane of the other direction whose vehicles may hide one of it)
-        lanes = self.zones.lanes
+        # (lane, neighbouring lane of the other direction whose vehicles may hide one of it), see REVEAL_S
+        z = self.zones
+        n = len(z.lanes)
         self.reveal_pairs = [(j, i) for j in range(n) for i in (j - 1, j + 1)
-                             if 0 <= i < n and lanes[i].sign != lanes[j].sign]
-        # the cells of each lane where a vehicle may be revealed
-        self.reveal_cells = np.stack([cv2.resize(m, self.covered_t.shape[:0:-1], interpolation=cv2.INTER_AREA) > 0
-                                      for m in self.zones.reveal_images])
+                             if 0 <= i < n and z.lanes[i].sign != z.lanes[j].sign]
+        cells = (-(-z.height // REVEAL_CELL_PX), -(-z.width // REVEAL_CELL_PX)) if self.reveal_pairs else (0, 0)
+        # per lane and grid cell (zone coordinates), when a reported vehicle of that lane last covered it
+        self.covered_t = np.full((n, *cells), -np.inf, np.float32)
+        self.covers = np.zeros((0, 4), np.int32)  # the cells reported vehicles cover now (x0, y0, x1, y1)
+        # the cells of each lane where a vehicle may be revealed: past its detection zone, short of its exit zone
+        beyond = (z.detection_image == 0) & (z.exit_image == 0)
+        self.reveal_cells = np.stack([
+            cv2.resize(((z.lane_image == lz.index) & beyond).astype(np.uint8) * 255, cells[::-1],
+                       interpolation=cv2.INTER_AREA) > 0 if self.reveal_pairs else np.zeros(cells, np.bool_)
+            for lz in z.lanes])
         self.last_states: list[VehicleState] = []
         self.stats: dict = {
             "frames": 0, "features": 0, "vehicles": 0, "finished": 0, "shake_px": (0.0, 0.0),

@@ -115,11 +115,7 @@ class SiteZones:
         self.camera = camera_from_homography(H, self.width, self.height)
         self.lane_image = self._paint("polygon_px")  # 0 = no lane, else LaneZones.index
         self.detection_image = self._paint("detection_px")
-        # where a vehicle hidden behind another may first be seen: each lane past its detection zone, short of its
-        # exit zone (see VisionPipeline._revealed)
-        exits = self._paint("exit_px")
-        self.reveal_images = [np.where((self.lane_image == lz.index) & (self.detection_image == 0) & (exits == 0),
-                                       255, 0).astype(np.uint8) for lz in self.lanes]
+        self.exit_image = self._paint("exit_px")
         ys, xs = np.nonzero(self.detection_image)
         if len(xs) == 0:
             raise ValueError("no detection zone falls inside the image")
@@ -170,13 +166,21 @@ CAMERA_HEIGHT_M = (3.0, 60.0)  # a plausible pole or overpass camera
 CROP_SHARE = 0.1
 
 
+def _centred(H: Homography, width: int, height: int) -> np.ndarray:
+    """The road-to-image homography in image widths from the image centre (the pinhole constraints on its
+    columns then weigh alike)."""
+    cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
+    s = float(width)
+    return np.diag([1 / s, 1 / s, 1.0]) @ np.array([[1, 0, -cx], [0, 1, -cy], [0, 0, 1]], dtype=np.float64) @ H.Hinv
+
+
 def camera_from_homography(H: Homography, width: int, height: int) -> tuple[float, float, float] | None:
     """Camera foot (X, Y) on the road and height (m), assuming square pixels and the principal point at
     the image centre. None when the homography does not fit such a camera on a pole or overpass
     (CAMERA_HEIGHT_M), or does not fix how far away the camera is."""
     cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
-    s = float(width)  # image coordinates in widths: the two constraints below then weigh alike
-    A = np.diag([1 / s, 1 / s, 1.0]) @ np.array([[1, 0, -cx], [0, 1, -cy], [0, 0, 1]], dtype=np.float64) @ H.Hinv
+    s = float(width)
+    A = _centred(H, width, height)
     a1, a2 = A[:, 0], A[:, 1]
     # The road's X and Y axes seen through K^-1 are orthogonal and of equal length, each linear in w = 1 / f^2:
     # c w + d = 0. Least squares over both weighs each by how much it says: the first one's terms both shrink
@@ -226,9 +230,9 @@ def _principal_column(H: Homography, width: int, height: int) -> tuple[float, fl
     [[1, 0, -u], [0, 1, 0], [-u, 0, f^2 + u^2]] (u the column's offset from the centre) both are linear in u and
     f^2 + u^2. A frame cropped left or right of the lens's axis fits one; so does a calibration whose
     along-road scale is somewhat out (it moves the column, hardly the height), a grossly wrong one not."""
-    cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
+    cx = (width - 1) / 2.0
     s = float(width)
-    A = np.diag([1 / s, 1 / s, 1.0]) @ np.array([[1, 0, -cx], [0, 1, -cy], [0, 0, 1]], dtype=np.float64) @ H.Hinv
+    A = _centred(H, width, height)
     a1, a2 = A[:, 0], A[:, 1]
 
     def terms(a: np.ndarray, b: np.ndarray) -> np.ndarray:  # a^T omega b: constant, -u and (f^2 + u^2) terms
