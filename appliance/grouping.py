@@ -667,11 +667,15 @@ class Grouper:
         # the sums of d (the near end's distance from the camera's foot), q (its own), d * d and d * q
         self.fit = np.zeros((n, 5), np.float64)
         self.fit_vid = np.full(n, -1, np.int64)  # the group that fit is for
+        # per slot: a feature of a shadow joined to its vehicle (see _side_host), which keeps it from being
+        # found as a vehicle again but is no part of its place on the road
+        self.shade = np.zeros(n, np.bool_)
         self.tracks: dict[int, VehicleTrack] = {}
         self.next_vid = 1
         self.finished_total = 0
         self._place = 0.0
         self._k = 1.0  # the speed ratio of the last group _host_of matched to its host (1 for a side part)
+        self._by_shadow = False  # ... and whether it matched as the host's shadow
         self.lights_only = False  # a night scene: vehicles seen by their lights alone (set by the pipeline)
         self.merged_now: set[int] = set()  # groups joined to another vehicle in the last step (for the pipeline's hold)
         self.recent: list[tuple[VehicleState, float, float]] = []  # finished vehicles, for their leftovers
@@ -693,6 +697,7 @@ class Grouper:
         self.fvid[slots] = -1
         self.fit_vid[slots] = -1
         self.late[slots] = False
+        self.shade[slots] = False
 
     def _components(self, t: float, live: np.ndarray, s: np.ndarray, age: np.ndarray, reported: np.ndarray
                     ) -> None:
@@ -813,8 +818,9 @@ class Grouper:
                 if tr.lane_index > 0:
                     small.append((vid, members))
                 continue
+            own = members[~self.shade[members]]
             body, rep, length, vx, vy, spot, x, tr.x_lo, tr.x_hi = group_summary(
-                members, s, px, age, NEAR_REP_M, SPOT_M, MOVING_MPS, STANDING_MPS)
+                own if len(own) else members, s, px, age, NEAR_REP_M, SPOT_M, MOVING_MPS, STANDING_MPS)
             lz = self.zones.by_index(tr.lane_index) if tr.lane_index > 0 else None
             sign = lz.sign if lz is not None else -1
             rep_y = float(s[rep, 1])
@@ -901,6 +907,7 @@ class Grouper:
             if host is not None:
                 self._link(members, groups[host])
                 self.fvid[members] = host
+                self.shade[members] = self._by_shadow
                 self.tracks[host].merged = True
                 self.merged_now.add(tr.id)
                 self.tracks.pop(tr.id)
@@ -1063,6 +1070,7 @@ class Grouper:
             if lo <= y <= hi and x_lo - m <= st.x <= x_hi + m:
                 return GHOST
         self._k = 1.0
+        self._by_shadow = False
         side = self._side_host(tr, st, y, vy, members, sign, shadow)
         if side is not None:
             return side
@@ -1152,6 +1160,7 @@ class Grouper:
                 if tr.reported and lo <= y <= hi and dv <= SIDE_SPEED_TOL_WATCHED:
                     return vid
             if gap <= SHADOW_GAP_M and width <= SHADOW_MAX_WIDTH_M and shadow is not None and shadow(members, vid):
+                self._by_shadow = True
                 return vid
         return None
 

@@ -44,6 +44,9 @@ REVEAL_S = 1.0
 REVEAL_CELL_PX = 4
 REVEAL_GROW = 1
 REVEAL_MIN_MPS = 1.5  # ... and kept only where they move their lane's way this fast (grouping.MIN_SPEED_MPS)
+# Started (or restarted) in traffic, the vehicles already past their detection zones are looked for as well, for
+# STARTUP_S from the first frame: corners anywhere in a lane short of its exit zone, kept as revealed ones are.
+STARTUP_S = 0.2
 STALE_GAP_S = 0.5  # a leading trajectory point this much older than the next one ...
 STALE_SPEED_SHARE = 0.5  # ... and reached at less than this share of the vehicle's speed is dropped
 STALL_SHARE = 0.7  # held points covered at less than this share of the near end's speed stood still a while
@@ -126,6 +129,7 @@ class VisionPipeline:
             cv2.resize(((z.lane_image == lz.index) & beyond).astype(np.uint8) * 255, cells[::-1],
                        interpolation=cv2.INTER_AREA) > 0 if self.reveal_pairs else np.zeros(cells, np.bool_)
             for lz in z.lanes])
+        self.startup_zone = _zone_of((z.lane_image > 0) & (z.detection_image == 0) & (z.exit_image == 0))
         self.last_states: list[VehicleState] = []
         self.stats: dict = {
             "frames": 0, "features": 0, "vehicles": 0, "finished": 0, "shake_px": (0.0, 0.0),
@@ -296,7 +300,10 @@ class VisionPipeline:
                     waited < RECHECK_S and self.grouper.matching_host(v.id))):
                 del self.held[v.id]
                 first = _released(held)  # v itself, with the held points before it
-                self._backfill(first, held)
+                if not v.finished or v.t - held[0].t >= 0.5 * HOLD_S:
+                    self._backfill(first, held)
+                else:  # gone right after its report: no speed to extend it back with (a crawl would be minutes)
+                    self._own_points(first, held)
                 out.append(first)
         for vid in [vid for vid in self.held if vid not in seen]:
             # gone (merged into another vehicle, or lost) while held: if it moved, its points go out as
@@ -420,7 +427,7 @@ class VisionPipeline:
         prev = self._aligned_prev()
         pts = self.detector.detect(img, prev, tr.px[live], shift)[:free]
         revealed = np.zeros(len(pts), np.bool_)
-        reveal = self._revealed(t)
+        reveal = self.startup_zone if t - self.first_t <= STARTUP_S else self._revealed(t)
         if reveal is not None and len(pts) < free:
             more = self.detector.detect(img, prev, np.concatenate([tr.px[live], pts]), shift, reveal)[:free - len(pts)]
             pts = np.concatenate([pts, more])
@@ -583,3 +590,12 @@ def _released(held: list[VehicleState]) -> VehicleState:
     last.trajectory = list(held[0].trajectory or []) + [(h.t, h.x, h.y_front) for h in held[:-1]]
     last.entered = held[0].entered
     return last
+
+
+def _zone_of(mask: np.ndarray) -> tuple[tuple[int, int, int, int], np.ndarray] | None:
+    """A detector zone (ROI, its mask) for the true pixels of a mask the size of the image; None if none."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if not len(rows):
+        return None
+    y0, y1, x0, x1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+    return (x0, y0, x1, y1), np.ascontiguousarray(mask[y0:y1, x0:x1].astype(np.uint8) * 255)
