@@ -45,7 +45,9 @@ REVEAL_CELL_PX = 4
 REVEAL_GROW = 1
 REVEAL_MIN_MPS = 1.5  # ... and kept only where they move their lane's way this fast (grouping.MIN_SPEED_MPS)
 # Started (or restarted) in traffic, the vehicles already past their detection zones are looked for as well, for
-# STARTUP_S from the first frame: corners anywhere in a lane short of its exit zone, kept as revealed ones are.
+# STARTUP_S from the first frame: corners anywhere in a lane short of its count line, kept as revealed ones are.
+# (Not past it: found all at once, a platoon's vehicles at one speed are grouped as one, and one already past
+# the line would take the count of the one behind it.)
 STARTUP_S = 0.2
 STALE_GAP_S = 0.5  # a leading trajectory point this much older than the next one ...
 STALE_SPEED_SHARE = 0.5  # ... and reached at less than this share of the vehicle's speed is dropped
@@ -129,7 +131,13 @@ class VisionPipeline:
             cv2.resize(((z.lane_image == lz.index) & beyond).astype(np.uint8) * 255, cells[::-1],
                        interpolation=cv2.INTER_AREA) > 0 if self.reveal_pairs else np.zeros(cells, np.bool_)
             for lz in z.lanes])
-        self.startup_zone = _zone_of((z.lane_image > 0) & (z.detection_image == 0) & (z.exit_image == 0))
+        rows, cols = np.mgrid[0:z.height, 0:z.width]
+        with np.errstate(divide="ignore", invalid="ignore"):  # the horizon's row, outside every lane
+            road_y = z.H.img_to_road(np.column_stack([cols.ravel(), rows.ravel()]))[:, 1].reshape(z.height, z.width)
+        short = np.zeros((z.height, z.width), np.bool_)  # each lane short of its count line
+        for lz in z.lanes:
+            short |= (z.lane_image == lz.index) & ((road_y - lz.count_y) * lz.sign < 0.0)
+        self.startup_zone = _zone_of(short & (z.detection_image == 0) & (z.exit_image == 0))
         self.last_states: list[VehicleState] = []
         self.stats: dict = {
             "frames": 0, "features": 0, "vehicles": 0, "finished": 0, "shake_px": (0.0, 0.0),
