@@ -137,7 +137,7 @@ class VisionPipeline:
         short = np.zeros((z.height, z.width), np.bool_)  # each lane short of its count line
         for lz in z.lanes:
             short |= (z.lane_image == lz.index) & ((road_y - lz.count_y) * lz.sign < 0.0)
-        self.startup_zone = _zone_of(short & (z.detection_image == 0) & (z.exit_image == 0))
+        self.startup_zone = _zone_of(short & beyond)
         self.last_states: list[VehicleState] = []
         self.stats: dict = {
             "frames": 0, "features": 0, "vehicles": 0, "finished": 0, "shake_px": (0.0, 0.0),
@@ -506,10 +506,10 @@ class VisionPipeline:
             # a vehicle's body reaches above and beside its features (its roof seen over the next lane)
             w, h = (x1 - x0) // 2 + g, y1 - y0 + g
             cells[max(y0 - h, 0):max(y1 + g + 1, 0), max(x0 - w, 0):max(x1 + w + 1, 0)] = False
-        rows, cols = np.flatnonzero(cells.any(axis=1)), np.flatnonzero(cells.any(axis=0))
-        if not len(rows):
+        box = _bounds(cells)
+        if box is None:
             return None
-        r0, r1, c0, c1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
+        c0, r0, c1, r1 = box
         mask = cv2.resize(cells[r0:r1, c0:c1].astype(np.uint8) * 255, None, fx=REVEAL_CELL_PX, fy=REVEAL_CELL_PX,
                           interpolation=cv2.INTER_NEAREST)
         x0, y0 = c0 * REVEAL_CELL_PX, r0 * REVEAL_CELL_PX
@@ -600,10 +600,18 @@ def _released(held: list[VehicleState]) -> VehicleState:
     return last
 
 
-def _zone_of(mask: np.ndarray) -> tuple[tuple[int, int, int, int], np.ndarray] | None:
-    """A detector zone (ROI, its mask) for the true pixels of a mask the size of the image; None if none."""
+def _bounds(mask: np.ndarray) -> tuple[int, int, int, int] | None:
+    """The bounding box (x0, y0, x1, y1; ends exclusive) of a mask's true cells; None if none."""
     rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
     if not len(rows):
         return None
-    y0, y1, x0, x1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
-    return (x0, y0, x1, y1), np.ascontiguousarray(mask[y0:y1, x0:x1].astype(np.uint8) * 255)
+    return int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1
+
+
+def _zone_of(mask: np.ndarray) -> tuple[tuple[int, int, int, int], np.ndarray] | None:
+    """A detector zone (ROI, its mask) for the true pixels of a mask the size of the image; None if none."""
+    box = _bounds(mask)
+    if box is None:
+        return None
+    x0, y0, x1, y1 = box
+    return box, np.ascontiguousarray(mask[y0:y1, x0:x1].astype(np.uint8) * 255)

@@ -178,7 +178,6 @@ def camera_from_homography(H: Homography, width: int, height: int) -> tuple[floa
     """Camera foot (X, Y) on the road and height (m), assuming square pixels and the principal point at
     the image centre. None when the homography does not fit such a camera on a pole or overpass
     (CAMERA_HEIGHT_M), or does not fix how far away the camera is."""
-    cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
     s = float(width)
     A = _centred(H, width, height)
     a1, a2 = A[:, 0], A[:, 1]
