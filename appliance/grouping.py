@@ -873,6 +873,7 @@ class Grouper:
                 retire.append(members)
                 if self._orphaned_part(tr, t):
                     self.merged_now.add(vid)
+                    out.append(replace(st, finished=True, joined=tr.votes[0]))
                 elif tr.reported:
                     out.append(self._finish(tr, exited=True))
                 continue
@@ -895,7 +896,7 @@ class Grouper:
                 tr.votes = (host, n, tr.votes[2] if same else off)
                 tr.vote_t = t
                 if n < RECHECK_VOTES:
-                    out.append(st)
+                    out.append(replace(st, part_of=host))
                     continue
             elif not tr.reported and ((host in groups and self._k > LEVEL_K) or tr.watch_host):
                 host = self._watched(tr, st, host if host in groups else None, groups)
@@ -911,6 +912,8 @@ class Grouper:
                 self.tracks[host].merged = True
                 self.merged_now.add(tr.id)
                 self.tracks.pop(tr.id)
+                if tr.reported:
+                    out.append(replace(st, finished=True, joined=host))
                 continue
             if not tr.reported:
                 tr.reported = True
@@ -919,6 +922,8 @@ class Grouper:
                 ahead = 0.0 if sign < 0 else tr.ground[0]
                 st.trajectory = [(pt, px_, py + ahead) for pt, px_, py in tr.trajectory[:-1]] or None
                 st.entered = self._entered(tr, st.t)
+            elif self.matching_host(tr.id):  # no match this frame: no evidence either way
+                st = replace(st, part_of=tr.votes[0])
             out.append(st)
         for vid in self._passed_through(t):
             self._retire_quietly(vid, groups[vid], retire)
@@ -1169,6 +1174,8 @@ class Grouper:
         where it was lost (it may be found again as a new group)."""
         if self._orphaned_part(tr, t):
             self.merged_now.add(tr.id)
+            if tr.last is not None:
+                out.append(replace(tr.last, finished=True, joined=tr.votes[0]))
         elif self._qualifies_on_loss(tr):
             out.append(self._finish(tr, exited=False))
         elif tr.reported and tr.trajectory:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -81,6 +81,9 @@ class _Track:
     first_y: float = 0.0  # its first point's front position, and whether it entered the view there
     entered: bool = False
     covered_from: float = np.inf  # wall time its Edie segments start at (before first_wall if backfilled late)
+    # a count-line crossing waiting while the group is re-checked as a part of another vehicle (see
+    # VehicleState.part_of): the arguments of its _count
+    held_count: tuple | None = None
 
 
 @dataclass
@@ -201,6 +204,9 @@ class TrafficMeasures:
         k = 0
         for v, ss in todo:
             seen.add(v.id)
+            if v.joined is not None:
+                self._join(v, out)
+                continue
             # a new vehicle's points before its report (held, and the stretch back to its region's entry) are in
             # the lane its report ends in: far away, where it was first seen, its place across the road is least
             # sure (a lane is a few pixels wide there, and on a curve the lanes shift sideways)
@@ -220,6 +226,7 @@ class TrafficMeasures:
             self._edie_add(*(list(c) for c in zip(*segs)))
         for vid in [vid for vid, tr in self.tracks.items() if vid not in seen and t - tr.prev[0] > LOST_AFTER_S]:
             tr = self.tracks.pop(vid)
+            self._release_count(tr, out)
             self._ended(vid, tr, wall)
             for lp in self.loops:
                 ev = lp.drop(vid, tr.prev[0])
@@ -274,6 +281,8 @@ class TrafficMeasures:
             if v.entered and raw is not None:
                 self._check_straddle(v, raw, offset, tr, out)
             return None
+        if v.part_of is None:
+            self._release_count(tr, out)
         seg_lane = raw if raw is not None else lane
         if seg_lane is not None and seg_lane not in tr.counted:
             self._check_crossing(v, prev, seg_lane, offset, tr, out)
@@ -310,6 +319,9 @@ class TrafficMeasures:
         lane_c = int(self.lanes.lanes_at(np.array([x]), np.array([c]))[0]) or lane
         if lane_c in tr.counted:
             return
+        if v.part_of is not None:
+            tr.held_count = (v, lane, tc, speed_kmh, x, offset)
+            return
         tr.counted.add(lane_c)
         speed_mps = speed_kmh / 3.6
         last = self.last_counted.get(lane_c)  # (time, vehicle, speed): a merged part never moves it on
@@ -329,6 +341,33 @@ class TrafficMeasures:
         seg = self._late_backfill(tr, lane_c, tc, offset)
         if seg is not None:
             self._edie_add([v.id], [v.x], [seg])
+
+    def _release_count(self, tr: _Track, out: MeasureUpdate) -> None:
+        """Count a crossing held while its group was re-checked as a part of another vehicle: the check
+        ended without a join (or the group ended), so it is a vehicle of its own, counted when it crossed."""
+        if tr.held_count is not None:
+            v, lane, tc, speed_kmh, x, offset = tr.held_count
+            tr.held_count = None
+            if self.clock.current is not None:
+                tc = max(tc, self.clock.current - offset)  # its period closed meanwhile: it counts in this one
+            self._count(replace(v, part_of=None), tr, lane, tc, speed_kmh, x, offset, out)
+
+    def _join(self, v: VehicleState, out: MeasureUpdate) -> None:
+        """Group v has joined vehicle v.joined as a part of it: a crossing held for it is dropped, and its Edie
+        distance and time are taken back over the time that vehicle covers (one family: see _duplicate). A
+        count it made before its re-check began stands, with its record."""
+        tr = self.tracks.pop(v.id, None)
+        if tr is None:
+            return
+        tr.held_count = None
+        self._duplicate(v.id, tr, v.joined)
+        self._ended(v.id, tr, self.now_wall)
+        for lp in self.loops:
+            ev = lp.drop(v.id, v.t)
+            if ev is not None:
+                out.loop_events.append(ev)
+        if tr.crossed:
+            out.vehicles.append(self._record(v.id, tr, v.t - tr.first_t))
 
     def _late_backfill(self, tr: _Track, lane: int, tc: float, offset: float) -> tuple | None:
         """The Edie segment from a just-counted vehicle's region entry to its first point, when it entered the
@@ -448,6 +487,7 @@ class TrafficMeasures:
         tr = self.tracks.pop(v.id, None)
         if tr is None:
             return None
+        self._release_count(tr, out)
         carry = self._carry_on(v, tr, offset)
         self._ended(v.id, tr, v.t + offset)
         for lp in self.loops:

@@ -295,6 +295,8 @@ class VisionPipeline:
         seen = set()
         for v in states:
             held = self.held.get(v.id)
+            if v.joined is not None and held is not None:
+                continue  # a part of another vehicle: never a vehicle of its own (dropped below)
             if held is None and v.trajectory is None:
                 out.append(v)
                 continue

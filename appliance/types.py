@@ -50,6 +50,12 @@ class VehicleState:
     # along-road speed of its lowest features (m/s): the spot speed reported at count lines, presence loops and
     # in vehicle records (vy is its low part's, taking in parts higher up that move faster in projection); None: vy
     spot_vy: float | None = None
+    # a young reported group being re-checked as a part of vehicle ``part_of`` (appliance.grouping, RECHECK_S):
+    # the measures hold a count-line crossing of it until the check ends
+    part_of: int | None = None
+    # its last state (finished), when it has joined vehicle ``joined`` as a part of it: a crossing held for it is
+    # dropped and its Edie distance and time are that vehicle's, counted once
+    joined: int | None = None
 
 
 @dataclass(slots=True)

@@ -423,6 +423,57 @@ def test_two_groups_on_one_vehicle_add_its_distance_and_time_once(host_span, fra
     assert time == pytest.approx(3.0, abs=0.03)
 
 
+@pytest.mark.parametrize("joins", [True, False])
+def test_a_crossing_of_a_group_rechecked_as_a_part_waits_for_the_check(joins):
+    """A group 12 m behind a vehicle's front (its fronts 0.6 s apart at 20 m/s: a follower could be there) is
+    being re-checked as a part of that vehicle (part_of) when it crosses the count line at 3.1 s. If it then
+    joins the vehicle it never counts, and Edie has the one vehicle's d(A) and t(A) (60 m, 3 s); if the check
+    ends without a join it counts, at the time it crossed."""
+    site = make_site(loops=[])
+    tm = TrafficMeasures(site)
+    crossings = []
+    for i in range(int(5.0 * 25) + 1):
+        t = i / 25
+        y = 100.0 - 20.0 * t
+        vs = [VehicleState(1, t, -2.5, y, y + 4.5, 0, -20, 4.5, 8)]
+        if 2.0 <= t <= 3.4:
+            part_of = 1 if t >= 2.8 else None
+            vs.append(VehicleState(2, t, -2.4, y + 12.0, y + 13.0, 0, -20, 1.0, 4, part_of=part_of,
+                                   finished=joins and t >= 3.4, joined=1 if joins and t >= 3.4 else None))
+        elif t > 3.4 and not joins:
+            vs.append(VehicleState(2, t, -2.4, y + 12.0, y + 13.0, 0, -20, 1.0, 4))
+        upd = tm.step(t, EPOCH + t, vs)
+        crossings += upd.crossings
+        if t < 3.4:
+            assert [c.vehicle_id for c in upd.crossings] in ([], [1])
+    assert [c.vehicle_id for c in crossings] == ([1] if joins else [1, 2])
+    assert crossings[-1].t == pytest.approx(2.5 if joins else 3.1, abs=1e-6)
+    dist, time = tm.edie.peek(EPOCH)[:, 0]
+    if joins:
+        assert dist == pytest.approx(60.0, abs=0.5)
+        assert time == pytest.approx(3.0, abs=0.03)
+    else:
+        assert time > 3.0 + 1.0  # the part's own time counts too
+
+
+def test_a_crossing_held_past_the_end_of_its_period_counts_in_the_next():
+    """A group under re-check crosses the count line 0.1 s before a period ends and is cleared 0.5 s into the
+    next: its count is not lost with the closed period, it goes to the period in progress."""
+    site = make_site(loops=[])
+    tm = TrafficMeasures(site)
+    periods = []
+    t0 = 296.0
+    for i in range(int(6.0 * 25) + 1):
+        t = t0 + i / 25
+        y = 50.0 - 20.0 * (t - 299.9)  # crosses lane 1's count line (50 m) at 299.9 s
+        upd = tm.step(t, EPOCH + t, [VehicleState(7, t, -2.5, y, y + 4.5, 0, -20, 4.5, 8,
+                                                  part_of=3 if t < 300.5 else None)])
+        periods += upd.periods
+    periods += tm.flush(EPOCH + t0 + 6.0)
+    counts = {p.period_start - EPOCH: p.count for p in periods if p.lane == 1}
+    assert counts == {0.0: 0, 300.0: 1}
+
+
 def test_a_vehicle_finalised_inside_the_region_drives_on_to_its_end():
     """A receding vehicle finalised at y = 69.6 m (the exit zone may begin inside the Edie region, 20-80 m)
     adds the 10 m it still drives to the region's end at its speed: d(A) = 60 m, t(A) = 3 s at 20 m/s."""

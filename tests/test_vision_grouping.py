@@ -101,6 +101,22 @@ def test_roof_fragment_joins_its_truck_but_a_faster_car_stays_apart():
     assert _counted(_run([truck, queued])) == 2
 
 
+def test_a_reported_roof_says_whose_part_it_may_be_while_rechecked_and_whom_it_joined():
+    """The roof of the truck above is reported as a vehicle before it is found on the truck: while it is
+    re-checked its states name the truck (part_of: the measures hold its count meanwhile), and its last state
+    says it joined the truck (its count dropped, its Edie distance and time the truck's)."""
+    truck = (_box(0.6, 2.6, 44.0, 54.0, 12, 1), -15.0, 2, 0, 0.0)
+    roof = (_box(0.8, 2.4, 46.0, 53.0, 8, 2), -15.0, 2, 12, 3.5)
+    seen = _run([truck, roof])
+    host = min(seen, key=lambda vid: seen[vid][0].t)
+    parts = [vid for vid in seen if vid != host]
+    assert len(parts) == 1, _firsts(seen)
+    ss = seen[parts[0]]
+    assert ss[-1].finished and ss[-1].joined == host
+    assert any(st.part_of == host for st in ss[:-1])
+    assert all(st.part_of is None and st.joined is None for st in seen[host])
+
+
 def _braking(t: float) -> tuple[float, float]:
     return -10.0 * t + 1.0 * t * t, -10.0 + 2.0 * t
 
