@@ -145,6 +145,10 @@ SIDE_SPEED_TOL_WATCHED = 0.2  # ... of speeds averaged over SPEED_WINDOW_S, for 
 SIDE_DY_M = 2.0  # near ends this close along the road
 SIDE_GAP_M = 1.0  # lateral gap between the two footprints
 SIDE_MAX_WIDTH_M = 3.5  # joint footprint width (two cars side by side span >= 5 m: lane 3.5 + car 1.7)
+# ... or up to this with the image between the two one body (a tall vehicle's flank and top are projected wider:
+# a 4 m high box from a 10 m pole spans 1.7 times its width; two cars side by side have road between them)
+SIDE_MAX_WIDTH_TALL_M = 7.0
+SIDE_TALL_HOST_M = 8.0  # ... of a vehicle this long in projection (a car beside a car in the next lane is shorter)
 # ... wider when the new group is only a shadow on the road (the image test says so): cast sideways by a
 # low sun it reaches a lane or more across, starting a little behind or ahead of the vehicle
 SHADOW_MAX_WIDTH_M = 9.0
@@ -1076,7 +1080,7 @@ class Grouper:
                 return GHOST
         self._k = 1.0
         self._by_shadow = False
-        side = self._side_host(tr, st, y, vy, members, sign, shadow)
+        side = self._side_host(tr, st, y, vy, members, sign, shadow, joined)
         if side is not None:
             return side
         # where the group's near end may lie on the road once a height magnification is undone (a cheap test
@@ -1125,7 +1129,8 @@ class Grouper:
         return None
 
     def _side_host(self, tr: VehicleTrack, st: VehicleState, y: float, vy: float, members: np.ndarray,
-                   sign: int, shadow: Callable[[np.ndarray, int], bool] | None) -> int | None:
+                   sign: int, shadow: Callable[[np.ndarray, int], bool] | None,
+                   joined: Callable[[np.ndarray, int], bool] | None = None) -> int | None:
         """A vehicle in a neighbouring lane of the same direction whose side part this group is: same
         speed, near ends level, and either a receding vehicle's flank (joint footprint no wider than one
         vehicle) or only a shadow on the road (the image says so). A reported group is compared by its
@@ -1164,6 +1169,12 @@ class Grouper:
                 lo, hi = _extent(o, other.own_length)
                 if tr.reported and lo <= y <= hi and dv <= SIDE_SPEED_TOL_WATCHED:
                     return vid
+            elif (flank and sign > 0 and gap <= SIDE_GAP_M and width <= SIDE_MAX_WIDTH_TALL_M and dy <= SIDE_DY_M
+                  and dv <= SIDE_SPEED_TOL and self.foot is not None
+                  and (st.x - o.x) * (o.x - self.foot[0]) > 0.0  # its top leans away from the camera
+                  and np.subtract(*_extent(o, other.own_length)[::-1]) >= SIDE_TALL_HOST_M
+                  and joined is not None and joined(members, vid)):
+                return vid  # a tall vehicle's flank, wider in projection: the image between them is its body
             if gap <= SHADOW_GAP_M and width <= SHADOW_MAX_WIDTH_M and shadow is not None and shadow(members, vid):
                 self._by_shadow = True
                 return vid

@@ -14,9 +14,11 @@ DT = 0.04
 COUNT_Y = 30.0
 
 
-def _run(objects: list[tuple[np.ndarray, float, int, int]], frames: int = 90) -> list[list]:
-    """objects: (road points (n, 2) at t=0, speed along Y, lane, first frame seen); all on the road plane."""
-    site = parse_site(site_dict(lanes=(("receding", -3.5, 0.0), ("receding", 0.0, 3.5))))
+def _run(objects: list[tuple[np.ndarray, float, int, int]], frames: int = 90,
+         lanes: tuple = (("receding", -3.5, 0.0), ("receding", 0.0, 3.5)), joined: bool | None = None) -> list[list]:
+    """objects: (road points (n, 2) at t=0, speed along Y, lane, first frame seen); all on the road plane.
+    joined: what the image test says of any two groups (None: no image)."""
+    site = parse_site(site_dict(lanes=lanes))
     g = Grouper(site.tracking, SiteZones(site))
     n = site.tracking.max_features
     s, px = np.zeros((n, 4)), np.zeros((n, 2))
@@ -34,7 +36,8 @@ def _run(objects: list[tuple[np.ndarray, float, int, int]], frames: int = 90) ->
                     px[slot] = (gx, -y)  # further along the road is higher in the image
                     lane[slot], alive[slot], age[slot] = ln, True, f - first
                 slot += 1
-        states, retire = g.step(f * DT, s, px, lane, alive, age)
+        states, retire = g.step(f * DT, s, px, lane, alive, age,
+                                is_joined=None if joined is None else (lambda a, b: joined))
         alive[retire] = False
         for st in states:
             seen.setdefault(st.id, []).append(st)
@@ -64,3 +67,27 @@ def test_two_vehicles_side_by_side_stay_apart():
     left = (_box(-3.0, -1.2, 10.0, 14.5, 10, 3), 15.0, 1, 6)
     right = (_box(0.4, 2.2, 10.0, 14.5, 12, 1), 15.0, 2, 0)
     assert _counted(_run([left, right])) == 2
+
+
+# both lanes right of the camera (its foot at x 0): a tall vehicle's top leans into the lane right of it
+RIGHT_LANES = (("receding", 1.0, 4.0), ("receding", 4.0, 7.0))
+
+
+def test_a_tall_vehicles_top_leaning_into_the_next_lane_joins_it_where_the_image_is_one_body():
+    """A 12 m truck in lane 1 whose top, projected away from the camera, is seen over lane 2 as a group of its
+    own, level with it and as fast: together 5 m wide, wider than one vehicle, so only the image between the
+    two tells a tall body from two vehicles side by side."""
+    truck = (_box(1.3, 3.8, 10.0, 22.0, 14, 1), 15.0, 1, 0)
+    top = (_box(4.1, 6.3, 10.0, 13.0, 8, 2), 15.0, 2, 6)
+    assert _counted(_run([truck, top], lanes=RIGHT_LANES, joined=True)) == 1
+    assert _counted(_run([truck, top], lanes=RIGHT_LANES, joined=False)) == 2
+    # the top of one in lane 2 would lean out of the road, not into lane 1: a car seen there is a car
+    car = (_box(2.0, 3.9, 10.0, 14.0, 10, 3), 15.0, 1, 6)
+    truck2 = (np.array([(x, y) for y in np.arange(10.0, 22.1, 2.0) for x in (4.2, 5.4, 6.5)]), 15.0, 2, 0)
+    assert _counted(_run([truck2, car], lanes=RIGHT_LANES, joined=True)) == 2
+
+
+def test_two_cars_side_by_side_stay_apart_even_where_the_image_shows_no_road_between():
+    left = (_box(2.0, 3.9, 10.0, 14.5, 10, 3), 15.0, 1, 0)
+    right = (_box(4.1, 6.0, 10.0, 14.5, 10, 5), 15.0, 2, 6)
+    assert _counted(_run([left, right], lanes=RIGHT_LANES, joined=True)) == 2
