@@ -1133,7 +1133,8 @@ class Grouper:
                    joined: Callable[[np.ndarray, int], bool] | None = None) -> int | None:
         """A vehicle in a neighbouring lane of the same direction whose side part this group is: same
         speed, near ends level, and either a receding vehicle's flank (joint footprint no wider than one
-        vehicle) or only a shadow on the road (the image says so). A reported group is compared by its
+        vehicle, or than a tall one's projection where the image between them is its body) or only a shadow
+        on the road (the image says so). A reported group is compared by its
         speed over a while, and with a vehicle reported after it only as its shadow or a much smaller flank
         (a receding vehicle's shadow cast ahead of it enters the view first); sets self._place for the votes."""
         for vid, other in self.tracks.items():
@@ -1162,23 +1163,26 @@ class Grouper:
                 continue
             gap = max(tr.x_lo - other.x_hi, other.x_lo - tr.x_hi)
             width = max(tr.x_hi, other.x_hi) - min(tr.x_lo, other.x_lo)
+            lo, hi = _extent(o, other.own_length)
             if flank and sign > 0 and gap <= SIDE_GAP_M and width <= SIDE_MAX_WIDTH_M:
                 if dy <= SIDE_DY_M and dv <= SIDE_SPEED_TOL:
                     return vid
                 # a reported part is watched longer (the votes): anywhere along the vehicle, speeds less sure
-                lo, hi = _extent(o, other.own_length)
                 if tr.reported and lo <= y <= hi and dv <= SIDE_SPEED_TOL_WATCHED:
                     return vid
             elif (flank and sign > 0 and gap <= SIDE_GAP_M and width <= SIDE_MAX_WIDTH_TALL_M and dy <= SIDE_DY_M
-                  and dv <= SIDE_SPEED_TOL and self.foot is not None
-                  and (st.x - o.x) * (o.x - self.foot[0]) > 0.0  # its top leans away from the camera
-                  and np.subtract(*_extent(o, other.own_length)[::-1]) >= SIDE_TALL_HOST_M
+                  and dv <= SIDE_SPEED_TOL and hi - lo >= SIDE_TALL_HOST_M and self._leans_away(st.x, o.x)
                   and joined is not None and joined(members, vid)):
-                return vid  # a tall vehicle's flank, wider in projection: the image between them is its body
+                return vid  # a tall vehicle's flank or top, wider in projection: the image between is its body
             if gap <= SHADOW_GAP_M and width <= SHADOW_MAX_WIDTH_M and shadow is not None and shadow(members, vid):
                 self._by_shadow = True
                 return vid
         return None
+
+    def _leans_away(self, x: float, host_x: float) -> bool:
+        """Whether a point at x across the road lies on the side of a vehicle at host_x away from the camera,
+        where its raised parts are projected."""
+        return self.foot is not None and (x - host_x) * (host_x - self.foot[0]) > 0.0
 
     def _lose(self, tr: VehicleTrack, t: float, out: list[VehicleState]) -> None:
         """A vehicle's features are gone: it is finished if it had left its detection zone, else remembered
