@@ -399,24 +399,33 @@ def test_overlapping_presences_make_one_actuation():
     assert tm.channels()[0].count == 1
 
 
+def drive(tm: TrafficMeasures, states_at, seconds: float = 5.0) -> list:
+    """Step tm at 25 frames/s for ``seconds`` with the states states_at(t, y) gives, y being where a front
+    entering lane 1 at 100 m at t = 0 and driving at 20 m/s is; returns each step's (t, update)."""
+    out = []
+    for i in range(int(seconds * 25) + 1):
+        t = i / 25
+        out.append((t, tm.step(t, EPOCH + t, states_at(t, 100.0 - 20.0 * t))))
+    return out
+
+
 @pytest.mark.parametrize("host_span, frag_span", [((0.0, 5.0), (0.5, 4.5)), ((1.5, 5.0), (0.0, 4.5)),
                                                   ((0.0, 3.0), (0.5, 5.0))])
 def test_two_groups_on_one_vehicle_add_its_distance_and_time_once(host_span, frag_span):
     """A vehicle tracked by two groups at once (one crossing the count line 0.015 s after the other, so
     counted once) adds Edie's d(A) and t(A) once over the time either group covers, whichever came first.
     Lane 1's region is 60 m long (y 80 -> 20), crossed at 20 m/s from t = 1 s to 4 s."""
-    site = make_site(loops=[])
-    tm = TrafficMeasures(site)
-    crossings = []
-    for i in range(int(5.0 * 25) + 1):
-        t = i / 25
-        y = 100.0 - 20.0 * t
+    tm = TrafficMeasures(make_site(loops=[]))
+
+    def states(t: float, y: float) -> list[VehicleState]:
         vs = []
         if host_span[0] <= t <= host_span[1]:
             vs.append(VehicleState(1, t, -2.5, y, y + 4.5, 0, -20, 4.5, 8))
         if frag_span[0] <= t <= frag_span[1]:
             vs.append(VehicleState(2, t, -2.4, y + 0.3, y + 1.3, 0, -20, 1.0, 4))
-        crossings += tm.step(t, EPOCH + t, vs).crossings
+        return vs
+
+    crossings = [c for _, upd in drive(tm, states) for c in upd.crossings]
     assert len(crossings) == 1 and tm.merged_crossings == 1
     dist, time = tm.edie.peek(EPOCH)[:, 0]
     assert dist == pytest.approx(60.0, abs=0.5)
@@ -429,12 +438,9 @@ def test_a_crossing_of_a_group_rechecked_as_a_part_waits_for_the_check(joins):
     being re-checked as a part of that vehicle (part_of) when it crosses the count line at 3.1 s. If it then
     joins the vehicle it never counts, and Edie has the one vehicle's d(A) and t(A) (60 m, 3 s); if the check
     ends without a join it counts, at the time it crossed."""
-    site = make_site(loops=[])
-    tm = TrafficMeasures(site)
-    crossings = []
-    for i in range(int(5.0 * 25) + 1):
-        t = i / 25
-        y = 100.0 - 20.0 * t
+    tm = TrafficMeasures(make_site(loops=[]))
+
+    def states(t: float, y: float) -> list[VehicleState]:
         vs = [VehicleState(1, t, -2.5, y, y + 4.5, 0, -20, 4.5, 8)]
         if 2.0 <= t <= 3.4:
             part_of = 1 if t >= 2.8 else None
@@ -442,10 +448,11 @@ def test_a_crossing_of_a_group_rechecked_as_a_part_waits_for_the_check(joins):
                                    finished=joins and t >= 3.4, joined=1 if joins and t >= 3.4 else None))
         elif t > 3.4 and not joins:
             vs.append(VehicleState(2, t, -2.4, y + 12.0, y + 13.0, 0, -20, 1.0, 4))
-        upd = tm.step(t, EPOCH + t, vs)
-        crossings += upd.crossings
-        if t < 3.4:
-            assert [c.vehicle_id for c in upd.crossings] in ([], [1])
+        return vs
+
+    steps = drive(tm, states)
+    assert all(c.vehicle_id == 1 for t, upd in steps if t < 3.4 for c in upd.crossings)  # the part's waits
+    crossings = [c for _, upd in steps for c in upd.crossings]
     assert [c.vehicle_id for c in crossings] == ([1] if joins else [1, 2])
     assert crossings[-1].t == pytest.approx(2.5 if joins else 3.1, abs=1e-6)
     dist, time = tm.edie.peek(EPOCH)[:, 0]
