@@ -876,8 +876,7 @@ class Grouper:
                 self.tracks.pop(vid)
                 retire.append(members)
                 if self._orphaned_part(tr, t):
-                    self.merged_now.add(vid)
-                    out.append(replace(st, finished=True, joined=tr.votes[0]))
+                    self._end_as_part(tr, st, tr.votes[0], out)
                 elif tr.reported:
                     out.append(self._finish(tr, exited=True))
                 continue
@@ -914,10 +913,8 @@ class Grouper:
                 self.fvid[members] = host
                 self.shade[members] = self._by_shadow
                 self.tracks[host].merged = True
-                self.merged_now.add(tr.id)
                 self.tracks.pop(tr.id)
-                if tr.reported:
-                    out.append(replace(st, finished=True, joined=host))
+                self._end_as_part(tr, st, host, out)
                 continue
             if not tr.reported:
                 tr.reported = True
@@ -1188,13 +1185,18 @@ class Grouper:
         """A vehicle's features are gone: it is finished if it had left its detection zone, else remembered
         where it was lost (it may be found again as a new group)."""
         if self._orphaned_part(tr, t):
-            self.merged_now.add(tr.id)
-            if tr.last is not None:
-                out.append(replace(tr.last, finished=True, joined=tr.votes[0]))
+            self._end_as_part(tr, tr.last, tr.votes[0], out)
         elif self._qualifies_on_loss(tr):
             out.append(self._finish(tr, exited=False))
         elif tr.reported and tr.trajectory:
             self.lost.append((t, tr.lane_index, tr.trajectory[-1][2], abs(tr.last.vy) if tr.last else 0.0))
+
+    def _end_as_part(self, tr: VehicleTrack, st: VehicleState | None, host: int, out: list[VehicleState]) -> None:
+        """Group tr ends as a part of vehicle host: never a vehicle of its own (the pipeline drops its held report,
+        see merged_now); a reported one's last state tells the measures whom it joined (VehicleState.joined)."""
+        self.merged_now.add(tr.id)
+        if tr.reported and st is not None:
+            out.append(replace(st, finished=True, joined=host))
 
     def _orphaned_part(self, tr: VehicleTrack, t: float) -> bool:
         """Whether a young reported group ending now (exited or lost) is a part of another vehicle: its report

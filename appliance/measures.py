@@ -228,10 +228,7 @@ class TrafficMeasures:
             tr = self.tracks.pop(vid)
             self._release_count(tr, out)
             self._ended(vid, tr, wall)
-            for lp in self.loops:
-                ev = lp.drop(vid, tr.prev[0])
-                if ev is not None:
-                    out.loop_events.append(ev)
+            self._off_loops(vid, tr.prev[0], out)
             # Gone without a finish: joined to another group, or lost in its detection zone and remembered to be
             # found again (the group found again is not counted again and gets a record of its own). Its count
             # stands, so it gets its record. (A vehicle still tracked when a replay or the service stops gets none.)
@@ -362,10 +359,7 @@ class TrafficMeasures:
         tr.held_count = None
         self._duplicate(v.id, tr, v.joined)
         self._ended(v.id, tr, self.now_wall)
-        for lp in self.loops:
-            ev = lp.drop(v.id, v.t)
-            if ev is not None:
-                out.loop_events.append(ev)
+        self._off_loops(v.id, v.t, out)
         if tr.crossed:
             out.vehicles.append(self._record(v.id, tr, v.t - tr.first_t))
 
@@ -482,6 +476,13 @@ class TrafficMeasures:
             if fam is not None and not any(o.family == fam for o in (*self.tracks.values(), *self.ended.values())):
                 self.families.pop(fam, None)
 
+    def _off_loops(self, vid: int, t: float, out: MeasureUpdate) -> None:
+        """An ended vehicle (last seen at capture time t) leaves the loops it was on; the actuations that end."""
+        for lp in self.loops:
+            ev = lp.drop(vid, t)
+            if ev is not None:
+                out.loop_events.append(ev)
+
     def _finish(self, v: VehicleState, offset: float, out: MeasureUpdate) -> tuple | None:
         """Record a finished vehicle; returns its carry-on Edie segment (see _carry_on) or None."""
         tr = self.tracks.pop(v.id, None)
@@ -490,10 +491,7 @@ class TrafficMeasures:
         self._release_count(tr, out)
         carry = self._carry_on(v, tr, offset)
         self._ended(v.id, tr, v.t + offset)
-        for lp in self.loops:
-            ev = lp.drop(v.id, v.t)
-            if ev is not None:
-                out.loop_events.append(ev)
+        self._off_loops(v.id, v.t, out)
         out.vehicles.append(self._record(v.id, tr, v.t - tr.first_t))
         return carry
 
