@@ -8,6 +8,8 @@ import subprocess
 import sys
 from collections import Counter
 
+import pytest
+
 from tools.sweep import summarise
 
 
@@ -56,6 +58,16 @@ def test_sweep_simulates_replays_and_compares_with_the_truth(tmp_path):
                         str(scene / "a.sqlite"), "--edie-parts"], capture_output=True, text=True, timeout=120)
     assert e.returncode == 0, e.stderr[-2000:]
     assert f"own ({parts['own'][2]:.0f} tracks): {100 * parts['own'][0] / parts['truth'][0]:.1f} %" in e.stdout
+    # the loop actuations by class: the scene's sums, as evaluate prints them
+    loops = rep["loop_classes"]
+    assert sum(c["truth"] for c in loops.values()) == sum(1 for _ in open(scene / "truth" / "loop_events.csv")) - 1
+    assert loops["car"]["matched"] >= 0.8 * loops["car"]["truth"] > 0  # the tracker's loops find its cars
+    car = loops["car"]
+    line = next(ln for ln in e.stdout.splitlines() if ln.startswith("  car "))
+    n, matched, on = line.split()[1:4]
+    assert (int(n), int(matched)) == (car["truth"], car["matched"])
+    assert [float(v) for v in on.split("/")] == pytest.approx([car["on_result_s"], car["on_truth_s"]], abs=0.051)
+    assert "(1 scenes; as evaluate)" in r.stdout
     # each lane's true count is the simulator's own, read here from its aggregates
     truth = Counter()
     with open(scene / "truth" / "aggregates.csv") as f:

@@ -21,6 +21,7 @@ from tools.edie_parts import format_total, total_parts
 from tools.evaluate import (EXTRA_CAUSES, MISSED_CAUSES, TABLE1_BANDS, EvaluateError, TruthComparison, cause_counts,
                             compare_crossings_with_truth, compare_with_truth, edie_parts_of, format_causes,
                             load_results, load_truth, period_errors, table1)
+from tools.loop_classes import format_loop_classes, loop_classes, merge, to_json, truth_classes
 from tools.simulate.presets import PRESETS
 
 TARGET_PRESETS = ("free-flow", "dense", "shockwave", "long-shadows", "night", "rain", "wind-shake",
@@ -174,6 +175,7 @@ def sweep(presets: str, seeds: str, seconds: float, work: Path, size: str, tag: 
     causes: dict[str, dict] = {}
     parts: dict[str, dict] = {}
     lanes = []  # every scene's lanes, for the Edie parts' sums
+    loops = []  # every scene's loop actuations by class
     for sc in scenes:
         try:
             truth, results = load_truth(sc.dir / "truth"), load_results(sc.dir / f"{tag}.sqlite")
@@ -184,6 +186,9 @@ def sweep(presets: str, seeds: str, seconds: float, work: Path, size: str, tag: 
         rows += _lane_rows(sc.name, whole, periods)
         if results["crossings"]:
             causes[sc.name] = cause_counts(compare_crossings_with_truth(truth, results["crossings"]))
+        if truth["loop_events"] and results.get("loop_events"):
+            loops.append(loop_classes(truth["loop_events"], results["loop_events"],
+                                      truth_classes(truth["vehicles_path"])))
         if results.get("edie_segments"):
             scene_lanes = edie_parts_of(truth, results, sc.dir / "site.toml")
             parts[sc.name] = total_parts(scene_lanes)
@@ -201,7 +206,13 @@ def sweep(presets: str, seeds: str, seconds: float, work: Path, size: str, tag: 
         click.echo(f"Edie distance and time counted, by the truth vehicle under each track ({len(parts)} scenes; "
                    f"as evaluate --edie-parts):")
         click.echo(format_total(parts_total))
+    loop_total = merge(loops)
+    if loops:
+        click.echo(f"Loop actuations matched to the truth's, by the truth vehicle's class ({len(loops)} scenes; "
+                   f"as evaluate):")
+        click.echo(format_loop_classes(loop_total))
     if json_out:
         json_out.write_text(json.dumps({"tag": tag, "scenes": rows, "summary": summary, "causes": causes,
-                                        "causes_total": total, "edie_parts": parts, "edie_parts_total": parts_total},
+                                        "causes_total": total, "edie_parts": parts, "edie_parts_total": parts_total,
+                                        "loop_classes": to_json(loop_total)},
                                        indent=1, default=lambda o: str(o)))
