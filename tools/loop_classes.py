@@ -3,6 +3,7 @@ it was measured at (what occupancy and the length classes rest on)."""
 
 from __future__ import annotations
 
+import bisect
 import csv
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -53,14 +54,19 @@ def loop_classes(truth_events: list[dict], result_events: list[dict], classes: d
     for e in result_events:
         by_channel.setdefault(int(e["channel"]), []).append(
             (float(e["t_on"]), float(e["t_off"]), _length(e)))
+    ons = {}
+    for ch, evs in by_channel.items():
+        evs.sort(key=lambda r: r[0])
+        ons[ch] = [r[0] for r in evs]
     used: set[tuple[int, int]] = set()
     out: dict[str, ClassLoops] = {}
     for e in sorted(truth_events, key=lambda e: float(e["t_on"])):
         ch, on = int(e["channel"]), float(e["t_on"])
         c = out.setdefault(classes.get(int(e["vehicle_id"]), "?"), ClassLoops())
         c.truth += 1
-        cands = [(abs(r[0] - on), i) for i, r in enumerate(by_channel.get(ch, []))
-                 if abs(r[0] - on) <= match_s and (ch, i) not in used]
+        times = ons.get(ch, [])
+        window = range(bisect.bisect_left(times, on - match_s), bisect.bisect_right(times, on + match_s))
+        cands = [(abs(times[i] - on), i) for i in window if (ch, i) not in used]
         if not cands:
             continue
         i = min(cands)[1]
