@@ -60,8 +60,10 @@ def test_sweep_simulates_replays_and_compares_with_the_truth(tmp_path):
     assert f"own ({parts['own'][2]:.0f} tracks): {100 * parts['own'][0] / parts['truth'][0]:.1f} %" in e.stdout
     # the loop actuations by class: the scene's sums, as evaluate prints them
     loops = rep["loop_classes"]
-    assert sum(c["truth"] for c in loops.values()) == sum(1 for _ in open(scene / "truth" / "loop_events.csv")) - 1
-    assert loops["car"]["matched"] >= 0.8 * loops["car"]["truth"] > 0  # the tracker's loops find its cars
+    truth_events = (scene / "truth" / "loop_events.csv").read_text().splitlines()[1:]
+    assert sum(c["truth"] for c in loops.values()) == len(truth_events)
+    # the tracker's loops find its cars (in this free-flow scene all of them; 0.8 leaves room for one)
+    assert loops["car"]["matched"] >= 0.8 * loops["car"]["truth"] > 0
     car = loops["car"]
     line = next(ln for ln in e.stdout.splitlines() if ln.startswith("  car "))
     n, matched, on = line.split()[1:4]
