@@ -971,6 +971,11 @@ class Grouper:
         the host if it matched it in WATCH_MIN_HITS frames and the ratio held, else it is a vehicle (None).
         WATCHING meanwhile; GHOST if the host has gone (finished) with the group a part of it so far."""
         if host is not None and tr.watch_host != host:
+            if tr.watch_host not in self.tracks and self._held(tr.watch):
+                # the vehicle it was watched against has just left the view, matched all along: the group is
+                # that vehicle's leftover (its next part in the view is no new evidence)
+                tr.watch_host, tr.watch = 0, []
+                return GHOST
             tr.watch_host, tr.watch = host, []  # another vehicle: start again
         other = self.tracks.get(tr.watch_host)
         if other is not None and other.last is not None and other.last.t == st.t:
@@ -980,15 +985,21 @@ class Grouper:
                 return WATCHING
         watch, watched = tr.watch, tr.watch_host
         tr.watch_host, tr.watch = 0, []
-        if sum(hit for _, _, hit in watch) < WATCH_MIN_HITS:
-            return None
-        ks = np.array([k for _, k, _ in watch])
-        m = max(len(ks) // 3, 1)  # the ratio over the first third of the watch and over the last
-        if abs(np.median(ks[-m:]) / np.median(ks[:m]) - 1.0) > WATCH_K_DRIFT:
+        if not self._held(watch):
             return None
         if other is None or other.last is None or other.last.t != st.t:
             return GHOST
         return watched if watched in groups else None
+
+    @staticmethod
+    def _held(watch: list[tuple[float, float, bool]]) -> bool:
+        """Whether a watch (time, speed ratio, matched) matched its vehicle in WATCH_MIN_HITS frames with the
+        ratio steady (see WATCH_K_DRIFT)."""
+        if sum(hit for _, _, hit in watch) < WATCH_MIN_HITS:
+            return False
+        ks = np.array([k for _, k, _ in watch])
+        m = max(len(ks) // 3, 1)  # the ratio over the first third of the watch and over the last
+        return abs(np.median(ks[-m:]) / np.median(ks[:m]) - 1.0) <= WATCH_K_DRIFT
 
     def matching_host(self, vid: int) -> bool:
         """Whether a reported group is gathering votes to join a vehicle it may be a part of."""

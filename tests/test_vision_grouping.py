@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from appliance.config import MeasuresConfig, parse_site
-from appliance.grouping import Grouper, VehicleTrack
+from appliance.grouping import GHOST, WATCHING, Grouper, VehicleTrack
+from appliance.types import VehicleState
 from appliance.zones import SiteZones
 from tests.test_vision_pipeline import site_dict
 
@@ -144,6 +145,30 @@ def test_a_roof_still_watched_when_its_truck_leaves_the_view_is_no_vehicle():
     roof = (_box(-0.8, 0.8, 22.0, 29.0, 8, 2), -15.0, 2, 0, 3.5)
     seen = _run([truck, roof], frames=90)
     assert len(seen) == 1 and seen[min(seen)][-1].finished, {k: len(v) for k, v in seen.items()}
+
+
+@pytest.mark.parametrize("cab_left, hits, expected", [(True, 8, GHOST), (True, 2, WATCHING), (False, 8, WATCHING)])
+def test_a_roof_watched_against_its_cab_is_its_leftover_when_the_cab_leaves_and_another_part_is_next(
+        cab_left: bool, hits: int, expected: int):
+    """A truck's roof is watched against its cab (it could be a faster follower); the cab leaves the view, and
+    the vehicle the roof now lies on is a part of the truck's box reported apart. Having matched the cab all
+    along, the roof is the cab's leftover (GHOST), not a group to watch afresh against that part (and to report
+    once that part leaves too). A roof that had barely been watched, or whose first host is still in the view,
+    starts a new watch."""
+    site = parse_site(site_dict())
+    g = Grouper(site.tracking, SiteZones(site))
+    t = 1.0
+    part = VehicleTrack(id=2, first_t=0.0, lane_index=2, reported=True)
+    part.last = VehicleState(id=2, t=t, x=0.0, y_front=20.0, y_rear=22.0, vx=0.0, vy=-15.0, length=2.0,
+                             n_features=12, spot_vy=-15.0)
+    g.tracks = {2: part}
+    if not cab_left:
+        g.tracks[1] = VehicleTrack(id=1, first_t=0.0, lane_index=2, reported=True)
+    roof = VehicleTrack(id=3, first_t=0.5, lane_index=2, watch_host=1,
+                        watch=[(t - 0.04 * (hits - i), 1.4, True) for i in range(hits)])
+    st = VehicleState(id=3, t=t, x=0.0, y_front=30.0, y_rear=31.0, vx=0.0, vy=-21.0, length=1.0, n_features=8,
+                      spot_vy=-21.0)
+    assert g._watched(roof, st, 2, {2: np.arange(12)}) == expected
 
 
 def test_at_night_a_motorcycle_seen_by_three_features_counts_but_a_truck_s_three_feature_top_does_not():
