@@ -834,3 +834,26 @@ def test_a_vehicle_driving_onto_a_loop_held_by_a_standing_call_is_counted():
     assert events[0].t_on == 2.0 and events[0].t_off == pytest.approx(10.0, abs=0.041)
     assert events[1].t_on == pytest.approx(10.0, abs=0.041)
     assert all(c for t, c in calls if 3.5 <= t < 30.0)
+
+
+def _edie_density(groups: list[tuple], seconds: float = 12.0, fps: float = 25.0) -> float:
+    """Lane 1's Edie density over its first period for groups (id, near end at t=0, length, features, seen
+    from) moving towards y=0 at 10 m/s."""
+    tm = TrafficMeasures(make_site(loops=[]))
+    for i in range(int(round(seconds * fps))):
+        t = i / fps
+        tm.step(t, EPOCH + t, [VehicleState(vid, t, -2.5, y0 - 10.0 * t, y0 - 10.0 * t + length, 0.0, -10.0, length, n)
+                               for vid, y0, length, n, t_from in groups if t >= t_from])
+    return next(p.density_vpkm for p in tm.flush(EPOCH + seconds) if p.lane == 1)
+
+
+@pytest.mark.parametrize("behind_m, counted_twice", [(2.0, False), (4.5, False), (6.5, True)])
+def test_edie_counts_a_vehicles_time_once_however_many_groups_it_shows(behind_m: float, counted_twice: bool):
+    """A second, smaller group whose near end stays a few metres behind a vehicle's is on that vehicle (its roof,
+    a fragment not joined, found only once the vehicle was past its count line): Edie counts the vehicle's time
+    and distance once. A follower 6.5 m behind (a car's length and a standstill gap: the closest a queued car
+    comes) is a vehicle of its own and counts in full, as it would alone."""
+    alone = _edie_density([(1, 100.0, 4.5, 8, 0.0)])
+    second = (2, 100.0 + behind_m, 2.0, 3, 5.5)
+    both = _edie_density([(1, 100.0, 4.5, 8, 0.0), second])
+    assert both == pytest.approx(alone + _edie_density([second]) if counted_twice else alone, rel=1e-6)
