@@ -33,9 +33,9 @@ CARRY_MIN_SPEED = 1.0  # m/s; slower ones are not carried on
 # several features back to the region entry) is extended back at its speed from its first point to the count
 # line, if it entered the view there (first seen in its detection zone, not found again where one was lost)
 LATE_BACKFILL_MIN_GAP_M = 1.0
-# A group whose near end lies on a bigger group's vehicle in its lane (from this far ahead of that one's near
-# end to its length behind it, at most this far) is a part of it: Edie counts one step of a vehicle once.
-# (Front to front a queued follower stays the length of the vehicle ahead and a standstill gap behind.)
+# A group whose footprint starts on a bigger group's in its lane (from this far short of that one's start to its
+# length beyond it, at most this far) is a part of that vehicle: Edie counts one step of a vehicle once. (A
+# queued follower stays the length of the vehicle ahead and a standstill gap away from it.)
 SAME_BODY_M = (0.5, 5.0)
 
 
@@ -205,7 +205,7 @@ class TrafficMeasures:
         flat = [s for _, ss in todo for s in ss]
         raws = self.lanes.lanes_at(np.array([s.x for s in flat]), np.array([s.y_front for s in flat]))
         segs: list[tuple | None] = []
-        held: dict[int, list[tuple]] = {}  # per lane, (near end, length) of the vehicles whose step counted
+        held: dict[int, list[tuple]] = {}  # per lane, (footprint start, length) of the vehicles whose step counted
         k = 0
         for v, ss in todo:
             seen.add(v.id)
@@ -222,11 +222,12 @@ class TrafficMeasures:
                 seg = self._advance(s, raw, offset, out)
                 if seg is None:
                     continue
-                near = min(s.y_front, s.y_rear)
-                if len(ss) == 1 and any(-SAME_BODY_M[0] <= near - y <= min(n, SAME_BODY_M[1])
-                                        for y, n in held.get(seg[0], ())):
-                    continue  # on a bigger group's vehicle (its roof, or a fragment): its time counts once
-                held.setdefault(seg[0], []).append((near, abs(s.y_front - s.y_rear)))
+                if s is ss[-1]:  # its step in this frame (a new vehicle's earlier points are not compared)
+                    lo = min(s.y_front, s.y_rear)
+                    if len(ss) == 1 and any(-SAME_BODY_M[0] <= lo - y <= min(n, SAME_BODY_M[1])
+                                            for y, n in held.get(seg[0], ())):
+                        continue  # on a bigger group's vehicle (its roof, or a fragment): its time counts once
+                    held.setdefault(seg[0], []).append((lo, abs(s.y_front - s.y_rear)))
                 segs.append((v.id, s.x, self._edie_segment(self.tracks[v.id], seg)))
             tr = self.tracks[v.id]
             seg = self._finish(v, offset, out) if v.finished else None

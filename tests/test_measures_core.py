@@ -842,8 +842,8 @@ def _edie_density(groups: list[tuple], seconds: float = 12.0, fps: float = 25.0)
     tm = TrafficMeasures(make_site(loops=[]))
     for i in range(int(round(seconds * fps))):
         t = i / fps
-        tm.step(t, EPOCH + t, [VehicleState(vid, t, -2.5, y0 - 10.0 * t, y0 - 10.0 * t + length, 0.0, -10.0, length, n)
-                               for vid, y0, length, n, t_from in groups if t >= t_from])
+        tm.step(t, EPOCH + t, [VehicleState(vid, t, -2.5, y0 - 10.0 * t, y0 - 10.0 * t + length, 0.0, -10.0,
+                                            length, n) for vid, y0, length, n, t_from in groups if t >= t_from])
     return next(p.density_vpkm for p in tm.flush(EPOCH + seconds) if p.lane == 1)
 
 
