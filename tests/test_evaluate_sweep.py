@@ -42,6 +42,9 @@ def test_sweep_simulates_replays_and_compares_with_the_truth(tmp_path):
     assert "Lane counts (whole scenes) within 3 %" in r.stdout and "speed" in r.stdout
     rep = json.loads(report.read_text())
     rows = rep["scenes"]
+    # the encoder the scene's video was written with (replays of mp4v and H.264 footage differ)
+    encoder = json.loads((scene / "truth" / "meta.json").read_text())["encoder"]
+    assert rep["encoders"] == {encoder: 1} and f"Scenes encoded with: {encoder} (1)" in r.stdout
     # extra and missed crossings by likely cause: as many as the scene's lanes hold
     causes = rep["causes"]["free-flow-s11"]
     assert rep["causes_total"] == causes and "by likely cause (1 scenes)" in r.stdout

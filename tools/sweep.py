@@ -74,6 +74,17 @@ def _prepare(scene: Scene, seconds: float, tag: str, size: tuple[int, int] = (64
     return out
 
 
+def scene_encoders(scenes: list[Scene]) -> dict[str, int]:
+    """How many scenes each encoder wrote (their truth's meta.json): the same scene encoded by OpenCV's mp4v
+    instead of ffmpeg's H.264 replays differently, so sweeps compare only on footage from one encoder."""
+    out: dict[str, int] = {}
+    for sc in scenes:
+        meta = json.loads((sc.dir / "truth" / "meta.json").read_text())
+        enc = meta.get("encoder", "unknown")
+        out[enc] = out.get(enc, 0) + 1
+    return out
+
+
 def _lane_rows(name: str, whole: TruthComparison, periods: TruthComparison) -> list[dict]:
     """One row per lane: its count over the whole scene, its errors over the compared periods."""
     rows = []
@@ -195,6 +206,8 @@ def sweep(presets: str, seeds: str, seconds: float, work: Path, size: str, tag: 
             lanes += scene_lanes
     summary = summarise(rows)
     click.echo(format_sweep(rows, summary, complete_only=not partial))
+    encoders = scene_encoders(scenes)
+    click.echo("Scenes encoded with: " + "; ".join(f"{e} ({n})" for e, n in encoders.items()))
     total = {kind: {k: sum(c[kind][k] for c in causes.values()) for k in names}
              for kind, names in (("extra", EXTRA_CAUSES), ("missed", MISSED_CAUSES))}
     if causes:
@@ -214,5 +227,5 @@ def sweep(presets: str, seeds: str, seconds: float, work: Path, size: str, tag: 
     if json_out:
         json_out.write_text(json.dumps({"tag": tag, "scenes": rows, "summary": summary, "causes": causes,
                                         "causes_total": total, "edie_parts": parts, "edie_parts_total": parts_total,
-                                        "loop_classes": to_json(loop_total)},
+                                        "loop_classes": to_json(loop_total), "encoders": encoders},
                                        indent=1, default=lambda o: str(o)))
