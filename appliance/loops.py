@@ -97,7 +97,8 @@ class VirtualLoop:
         # the actuation in progress: vehicles overlapping on the loop give one actuation, as a real
         # loop gives (a fragment of a vehicle does not add a count)
         self.act: dict | None = None
-        self.last_off: float | None = None  # capture time the last actuation ended
+        self.last_off: float | None = None  # capture time the last actuation ended ...
+        self.last_crawled = False  # ... and whether its last vehicle left crawling (or was lost on the loop)
 
     def update(
         self, vid: int, in_lane: bool, prev: tuple | None, cur: tuple, offset: float, was_in_lane: bool = True
@@ -162,9 +163,11 @@ class VirtualLoop:
             self.active[STANDING] = _Presence(t_on, t_on + offset)
             return None
         last_off = self.act["t_off"] if self.act is not None else self.last_off
-        # the vehicle the loop saw last if it was still on the loop as that one left it and stood soon after
-        # (its track lost as it stopped); else one the tracker never put on the loop
-        seen = last_off is not None and came <= last_off and stood - last_off <= SETTLE_S
+        crawled = self.act["crawled"] if self.act is not None else self.last_crawled
+        # the vehicle the loop saw last if that one left it crawling (or was lost on it), the image showed the loop
+        # occupied as it left, and it stood soon after (its track lost as it stopped); else one the tracker never
+        # put on the loop (one that drove off at speed is not standing on the loop moments later)
+        seen = last_off is not None and crawled and came <= last_off and stood - last_off <= SETTLE_S
         t_on = min(stood, last_off) if seen else stood
         ev = self.tick(t_on)
         self.active[STANDING] = _Presence(t_on, t_on + offset)
@@ -227,6 +230,7 @@ class VirtualLoop:
         """The actuation in progress is over: its on-interval is kept; its event unless it counted nothing."""
         act, self.act = self.act, None
         self.last_off = act["t_off"]
+        self.last_crawled = act["crawled"]
         offset = act["wall_on"] - act["t_on"]
         self.intervals.append((act["wall_on"], act["t_off"] + offset))
         if not act["counted"]:

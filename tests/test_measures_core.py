@@ -857,3 +857,23 @@ def test_edie_counts_a_vehicles_time_once_however_many_groups_it_shows(behind_m:
     second = (2, 100.0 + behind_m, 2.0, 3, 5.5)
     both = _edie_density([(1, 100.0, 4.5, 8, 0.0), second])
     assert both == pytest.approx(alone + _edie_density([second]) if counted_twice else alone, rel=1e-6)
+
+
+def test_a_car_standing_on_a_loop_just_after_another_drove_off_it_is_a_second_actuation():
+    """A tracked car drives over L1 at 18 km/h (on 1.64-2.9 s); its body hides the loop from the camera as it goes
+    (the image shows the loop occupied from 2 s), and an untracked car comes and stands on the loop from 4 s
+    (a standing call from 5.5 s to 20 s). The car that drove off at speed cannot be standing there a second
+    later: the standing call is a second actuation, counted, from when it stood."""
+    site = make_site(loops=[{"id": "L1", "lane": 1, "channel": 1, "y_m": 30.0, "length_m": 1.8}])
+    tm = TrafficMeasures(site)
+    events = []
+    for i in range(int(25.0 * 25)):
+        t = i / 25
+        y = 40.0 - 5.0 * t
+        states = [VehicleState(1, t, -2.5, y, y + 4.5, 0.0, -5.0, 4.5, 5)] if y > 10.0 else []
+        sight = LoopSight(2.0 if 2.0 <= t < 20.0 else None, (2.0, 4.0) if 5.5 <= t < 20.0 else None)
+        upd = tm.step(t, EPOCH + t, states, {"L1": sight})
+        events += [e for e in upd.loop_events if e.loop_id == "L1"]
+    assert [e.vehicle_id for e in events] == [1, STANDING] and tm.channels()[0].count == 2
+    assert events[0].t_off == pytest.approx(2.9, abs=0.041)
+    assert events[1].t_on == 4.0 and events[1].t_off == pytest.approx(20.0, abs=0.041)
