@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 import click
 import numpy as np
 
-from tools.loop_classes import MATCH_S, format_loop_classes, loop_classes, truth_classes
+from tools.loop_classes import MATCH_S, format_loop_classes, scene_loop_classes
 
 if TYPE_CHECKING:
     from tools.edie_parts import LaneParts
@@ -460,11 +460,11 @@ def evaluate(results_path: str, truth_dir: str | None, counts_path: str | None, 
                 raise EvaluateError(f"{results_path}: no period matches the truth's lanes and period starts "
                                     f"(was the replay --start the simulator's start time?)")
             click.echo(format_truth_report(cmp))
-            if truth["loop_events"] and results.get("loop_events"):
+            by_class = scene_loop_classes(truth, results)
+            if by_class is not None:
                 click.echo(f"\nLoop actuations matched to the truth's (same channel, on within {MATCH_S:g} s), "
                            f"by the truth vehicle's class:")
-                click.echo(format_loop_classes(loop_classes(truth["loop_events"], results["loop_events"],
-                                                            truth_classes(truth["vehicles_path"]))))
+                click.echo(format_loop_classes(by_class))
             if list_crossings:
                 if not results["crossings"]:
                     raise EvaluateError(

@@ -81,6 +81,14 @@ def loop_classes(truth_events: list[dict], result_events: list[dict], classes: d
     return out
 
 
+def scene_loop_classes(truth: dict, results: dict) -> dict[str, ClassLoops] | None:
+    """loop_classes for one scene as tools.evaluate loads it (truth dir, results), or None where either side
+    has no loop actuations."""
+    if not truth["loop_events"] or not results.get("loop_events"):
+        return None
+    return loop_classes(truth["loop_events"], results["loop_events"], truth_classes(truth["vehicles_path"]))
+
+
 def merge(parts: list[dict[str, ClassLoops]]) -> dict[str, ClassLoops]:
     """Several scenes' class sums as one."""
     out: dict[str, ClassLoops] = {}

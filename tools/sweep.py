@@ -21,7 +21,7 @@ from tools.edie_parts import format_total, total_parts
 from tools.evaluate import (EXTRA_CAUSES, MISSED_CAUSES, TABLE1_BANDS, EvaluateError, TruthComparison, cause_counts,
                             compare_crossings_with_truth, compare_with_truth, edie_parts_of, format_causes,
                             load_results, load_truth, period_errors, table1)
-from tools.loop_classes import format_loop_classes, loop_classes, merge, to_json, truth_classes
+from tools.loop_classes import format_loop_classes, merge, scene_loop_classes, to_json
 from tools.simulate.presets import PRESETS
 
 TARGET_PRESETS = ("free-flow", "dense", "shockwave", "long-shadows", "night", "rain", "wind-shake",
@@ -197,9 +197,9 @@ def sweep(presets: str, seeds: str, seconds: float, work: Path, size: str, tag: 
         rows += _lane_rows(sc.name, whole, periods)
         if results["crossings"]:
             causes[sc.name] = cause_counts(compare_crossings_with_truth(truth, results["crossings"]))
-        if truth["loop_events"] and results.get("loop_events"):
-            loops.append(loop_classes(truth["loop_events"], results["loop_events"],
-                                      truth_classes(truth["vehicles_path"])))
+        by_class = scene_loop_classes(truth, results)
+        if by_class is not None:
+            loops.append(by_class)
         if results.get("edie_segments"):
             scene_lanes = edie_parts_of(truth, results, sc.dir / "site.toml")
             parts[sc.name] = total_parts(scene_lanes)
