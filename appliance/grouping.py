@@ -99,6 +99,14 @@ WATCH_S = 1.0  # watched this long, unreported (followers' speed ratios change 1
 WATCH_MIN_HITS = 5  # ... and it joins after matching the vehicle in this many frames ...
 WATCH_K_DRIFT = 0.1  # ... if its speed ratio held within this share (parts: within 2-8 %)
 WATCHING = -2  # host id meaning "still watched"
+# A new group is first judged on its features' speeds, a frame or two old (one frame of image motion each): a
+# roof's 15-20 % over its vehicle's speed may not show yet. When its speed is within UNSURE_K times a vehicle's
+# and some height would put it on that vehicle, with the image between the two one body, it is watched before
+# it is reported (see Grouper._unsure_host) and judged on its ratios and matches from when it is WATCH_SETTLE_S old.
+# Only vehicles at PART_MIN_MPS or faster, and of another lane only tall ones (SIDE_TALL_HOST_M): a car's roof is
+# not seen over the next lane.
+UNSURE_K = (0.85, 1.3)
+WATCH_SETTLE_S = 0.4
 # a reported vehicle lost short of its exit (stopped in a queue, occluded) may be found again as a new group:
 # within this long, and within this far of where it could be by then, a new group has not entered the view
 # (see _entered). Lost at speed it has driven on at least as far as braking at LOST_BRAKE_MPS2 takes it.
@@ -624,6 +632,7 @@ class VehicleTrack:
     vote_t: float = -np.inf  # when it last matched the candidate host
     watch_host: int = 0  # a vehicle this new group may be an elevated part of (see Grouper._watched) ...
     watch: list[tuple[float, float, bool]] = field(default_factory=list)  # ... (t, speed ratio, matched it)
+    unsure: bool = False  # watched on its first speeds alone (see Grouper._unsure_host)
     shadow_tests: tuple[float, int, int] | None = None  # (first test's time, frames tested, frames found
     # only a shadow on the road)
     ground: tuple[float, float, int] | None = None  # reported length, far end on the road, lane direction
@@ -980,7 +989,8 @@ class Grouper:
         other = self.tracks.get(tr.watch_host)
         if other is not None and other.last is not None and other.last.t == st.t:
             if other.last.vy * st.vy > 0:
-                tr.watch.append((st.t, st.vy / other.last.vy, host is not None))
+                settled = not tr.unsure or st.t - tr.first_t >= WATCH_SETTLE_S
+                tr.watch.append((st.t, st.vy / other.last.vy if settled else np.nan, settled and host is not None))
             if not tr.watch or st.t - tr.watch[0][0] < WATCH_S:
                 return WATCHING
         watch, watched = tr.watch, tr.watch_host
@@ -994,10 +1004,10 @@ class Grouper:
     @staticmethod
     def _held(watch: list[tuple[float, float, bool]]) -> bool:
         """Whether a watch (time, speed ratio, matched) matched its vehicle in WATCH_MIN_HITS frames with the
-        ratio steady (see WATCH_K_DRIFT)."""
+        ratio steady over them (see WATCH_K_DRIFT; a group's first speeds, still settling, match nothing)."""
         if sum(hit for _, _, hit in watch) < WATCH_MIN_HITS:
             return False
-        ks = np.array([k for _, k, _ in watch])
+        ks = np.array([k for _, k, _ in watch if np.isfinite(k)])
         m = max(len(ks) // 3, 1)  # the ratio over the first third of the watch and over the last
         return abs(np.median(ks[-m:]) / np.median(ks[:m]) - 1.0) <= WATCH_K_DRIFT
 
@@ -1134,6 +1144,44 @@ class Grouper:
                 self._place = gy - o.y_front  # where on the vehicle the group lies
                 self._k = k
                 return vid
+        if not tr.reported and not tr.watch_host:
+            return self._unsure_host(tr, st, y, vy, members, joined)
+        return None
+
+    def _unsure_host(self, tr: VehicleTrack, st: VehicleState, y: float, vy: float, members: np.ndarray,
+                     joined: Callable[[np.ndarray, int], bool] | None) -> int | None:
+        """A vehicle that a new group, first judged, could be an elevated part of at some height (its
+        features' speeds, a frame or two old, do not tell it yet: see UNSURE_K): the group is then watched
+        against it (see _watched), which judges it on its speeds as they settle."""
+        if self.foot is None or joined is None:
+            return None
+        fx, fy = self.foot[0], self.foot[1]
+        for vid, other in self.tracks.items():
+            o = other.last
+            if vid == tr.id or not other.reported or o is None or o.t != st.t or o.vy * vy <= 0:
+                continue
+            if other.n_now < tr.n_now or not UNSURE_K[0] <= vy / o.vy <= UNSURE_K[1] or abs(o.vy) < PART_MIN_MPS:
+                continue
+            if other.lane_index != tr.lane_index and other.own_length < SIDE_TALL_HOST_M:
+                continue  # only a tall vehicle's top is seen over the next lane
+            lo, hi = _extent(o, other.own_length)
+            hi = max(hi, lo + 1.0 + ELEVATED_LENGTH_M + 1.0)
+            # the heights (k from LEVEL_K to k_max) that put the near end on the vehicle, along and across
+            k_along = ((y - fy) / (hi - fy) if hi > fy else np.inf, (y - fy) / (lo - fy) if lo > fy else np.inf)
+            x_lo = min(other.x_lo, other.x_hi - ELEVATED_WIDTH_M) - FRAGMENT_X_MARGIN_M
+            x_hi = max(other.x_hi, other.x_lo + ELEVATED_WIDTH_M) + FRAGMENT_X_MARGIN_M
+            k_lo, k_hi = max(LEVEL_K + 0.01, k_along[0]), min(self.k_max, k_along[1])  # elevated: watched
+            if k_lo > k_hi:
+                continue
+            k = np.linspace(k_lo, k_hi, 8)
+            gx = fx + (st.x - fx) / k
+            fits = (gx >= x_lo) & (gx <= x_hi)
+            if not fits.any() or not joined(members, vid):
+                continue
+            self._k = float(k[np.argmax(fits)])
+            self._place = fy + (y - fy) / self._k - o.y_front
+            tr.unsure = True
+            return vid
         return None
 
     def _side_host(self, tr: VehicleTrack, st: VehicleState, y: float, vy: float, members: np.ndarray,

@@ -137,6 +137,22 @@ def test_a_faster_car_closing_on_a_braking_one_is_not_taken_for_its_roof(behind_
     assert _counted(_run([truck, roof], frames=80)) == 1
 
 
+@pytest.mark.parametrize("first_ratio", [0.9, 1.0])
+def test_a_roof_whose_first_speeds_read_as_its_cars_is_watched_before_it_counts(monkeypatch, first_ratio):
+    """A car's roof (1.5 m up: 12 % faster than the car in projection, too little for a re-check once reported)
+    is first seen as a group of its own while its features' speeds are still settling, reading the car's speed
+    or below it. Level with the car it would lie beyond it, but some height puts it on the car, and the image
+    between the two is one body: it is watched before it is reported, and joins the car once its speed shows
+    its height. A car following 7 m behind at the same speed, also watched, stays a vehicle of its own."""
+    ch = SiteZones(parse_site(site_dict())).camera[2]
+    monkeypatch.setitem(globals(), "SETTLING", first_ratio * (ch - 1.5) / ch)  # read by _run
+    car = (_box(-1.0, 1.0, 60.0, 64.5, 10, 41), -20.0, 2, 0, 0.0)
+    roof = (_box(-0.8, 0.8, 61.5, 63.5, 8, 42), -20.0, 2, 12, 1.5)
+    assert _counted(_run([car, roof], joined=True)) == 1
+    follower = (_box(-1.0, 1.0, 71.5, 76.0, 8, 43), -20.0, 2, 12, 0.0)
+    assert _counted(_run([car, follower], joined=True)) == 2
+
+
 def test_a_roof_still_watched_when_its_truck_leaves_the_view_is_no_vehicle():
     """A truck's roof, a group of its own, is watched before it joins (it could be a faster follower); the truck
     leaves the view meanwhile. The roof, still matching the truck's speed, is the truck's leftover: it is
