@@ -10,6 +10,7 @@ is seen of its vehicle joins only where the image between the two is one body.
 
 from __future__ import annotations
 
+import bisect
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
@@ -125,6 +126,16 @@ RECHECK_K_MIN = 1.12
 # the last this recently:
 ORPHAN_VOTES = 3
 ORPHAN_GAP_S = 0.2
+# A reported group that lay at k times a reported vehicle's distance from the camera's foot plus a constant
+# (RIGID_K: an elevated part of it, seen beyond its near end) within RIGID_RES_M over the last RIGID_S, while
+# that vehicle's speed changed by RIGID_DV_MPS or more, is that vehicle's part, at any speed: a follower
+# through a stop or a start lags its leader by a second or more. (Checked every RIGID_EVERY frames; a roof
+# reported apart in stop-and-go traffic otherwise adds its time to Edie's and stands on loops on its own.)
+RIGID_S = 4.0
+RIGID_DV_MPS = 4.0
+RIGID_RES_M = 0.2
+RIGID_K = (1.04, 1.5)
+RIGID_EVERY = 10
 MAX_HEIGHT_M = 4.5  # the tallest vehicle: bounds the height magnification of a fragment
 SPEED_WINDOW_S = 0.5  # speeds compared for the height magnification are averaged over this long
 # Reported length: each feature's place on the road behind the near end, from a straight-line fit of its
@@ -938,6 +949,13 @@ class Grouper:
         for vid in self._passed_through(t):
             self._retire_quietly(vid, groups[vid], retire)
             out = [st for st in out if st.id != vid]
+        for part, host in self._rigid_parts(t):
+            st = next((o for o in out if o.id == part), None)
+            out = [o for o in out if o.id != part]
+            self._link(groups[part], groups[host])
+            self.fvid[groups[part]] = host
+            self.tracks[host].merged = True
+            self._end_as_part(self.tracks.pop(part), st, host, out)
         self.late = self._late_slots(t, small, s, age)
         slots = np.concatenate(retire) if retire else np.zeros(0, np.int64)
         return [self._grounded(st, ground.get(st.id)) for st in out], slots
@@ -1000,6 +1018,30 @@ class Grouper:
         if other is None or other.last is None or other.last.t != st.t:
             return GHOST
         return watched if watched in groups else None
+
+    def _rigid_parts(self, t: float) -> list[tuple[int, int]]:
+        """(part, host) pairs of reported groups of one lane where the part has moved as an elevated part of the
+        host through a change of speed (see RIGID_S): checked every RIGID_EVERY frames of the part."""
+        if self.foot is None:
+            return []
+        fy = self.foot[1]
+        out: list[tuple[int, int]] = []
+        taken: set[int] = set()
+        for pid, part in self.tracks.items():
+            if not part.reported or t - part.report_t <= RECHECK_S or part.frames % RIGID_EVERY or part.last is None \
+                    or part.last.t != t or pid in taken:
+                continue
+            py = part.trajectory[-1][2]
+            for hid, host in self.tracks.items():
+                o = host.last
+                if hid == pid or hid in taken or not host.reported or host.lane_index != part.lane_index \
+                        or o is None or o.t != t or not 0.0 < py - host.trajectory[-1][2] <= ELEVATED_LENGTH_M:
+                    continue
+                if _moves_rigidly(part.trajectory, host.trajectory, fy):
+                    out.append((pid, hid))
+                    taken.update((pid, hid))
+                    break
+        return out
 
     @staticmethod
     def _held(watch: list[tuple[float, float, bool]]) -> bool:
@@ -1316,6 +1358,28 @@ class Grouper:
         self.finished_total += 1
         self.recent.append((st, tr.x_lo, tr.x_hi))
         return self._grounded(replace(st, finished=True, exited=exited, trajectory=None), tr.ground)
+
+
+def _moves_rigidly(part: list[tuple[float, float, float]], host: list[tuple[float, float, float]], fy: float) -> bool:
+    """Whether over their last RIGID_S together the part's near end lay at k times the host's distance from the
+    camera's foot plus a constant (an elevated part of it: RIGID_K), within RIGID_RES_M, while the host's speed
+    changed by RIGID_DV_MPS or more."""
+    t0 = min(part[-1][0], host[-1][0]) - RIGID_S
+    ph = {round(p[0], 3): p[2] for p in part[bisect.bisect_left(part, (t0,)):]}
+    pairs = np.array([(p[0], p[2], ph[round(p[0], 3)]) for p in host[bisect.bisect_left(host, (t0,)):]
+                      if round(p[0], 3) in ph])
+    if len(pairs) < 10 or pairs[-1, 0] - pairs[0, 0] < 0.9 * RIGID_S:
+        return False
+    tt, ya, yb = pairs.T
+    v = np.abs(np.diff(ya) / np.maximum(np.diff(tt), 1e-3))
+    n = max(len(v) // 8, 1)
+    vs = np.convolve(v, np.ones(n) / n, mode="valid")
+    if vs.max() - vs.min() < RIGID_DV_MPS:
+        return False
+    a = np.column_stack([ya - fy, np.ones(len(ya))])
+    (k, c), *_ = np.linalg.lstsq(a, yb - fy, rcond=None)
+    res = float(np.sqrt(np.mean((a @ np.array([k, c]) - (yb - fy)) ** 2)))
+    return RIGID_K[0] <= k <= RIGID_K[1] and res <= RIGID_RES_M
 
 
 def _reachable(ahead: float, speed: float, dt: float) -> bool:

@@ -153,6 +153,40 @@ def test_a_roof_whose_first_speeds_read_as_its_cars_is_watched_before_it_counts(
     assert _counted(_run([car, follower], joined=True)) == 2
 
 
+def _stop_and_go(t: float) -> tuple[float, float]:
+    """Distance travelled and speed (approaching, so negative) of a car braking from 8 m/s at 2 m/s^2 from 0.5 s,
+    standing from 4.5 s to 6.5 s, then pulling away at 2 m/s^2; before 0 it ran at 8 m/s."""
+    if t < 0.5:
+        return -8.0 * t, -8.0
+    if t < 4.5:
+        u = t - 0.5
+        return -(4.0 + 8.0 * u - u * u), -(8.0 - 2.0 * u)
+    if t < 6.5:
+        return -20.0, 0.0
+    u = t - 6.5
+    return -(20.0 + u * u), -2.0 * u
+
+
+def test_a_roof_reported_apart_in_stop_and_go_joins_its_car_but_a_follower_does_not():
+    """A car brakes to a stop and pulls away again (too slow for a roof's re-check by speed ratio). Its roof,
+    a group of its own reported as a vehicle, keeps k times the car's distance from the camera's foot plus a
+    constant through the stop: it joins the car, one vehicle at the count line. A car following it through the
+    same stop a second later (as drivers do), standing 7 m behind it, moves nothing like that: two vehicles."""
+    car = (_box(-1.0, 1.0, 60.0, 64.5, 10, 61), _stop_and_go, 2, 0, 0.0)
+    roof = (_box(-0.8, 0.8, 61.5, 63.5, 8, 62), _stop_and_go, 2, 12, 1.5)
+    seen = _run([car, roof], frames=300)
+    assert _counted(seen) == 1, _firsts(seen)
+    joined = [ss[-1] for ss in seen.values() if ss[-1].joined is not None]
+    assert len(joined) == 1 and joined[0].t < 9.0, _firsts(seen)  # well before the count line (about 9.7 s)
+
+    def follower_motion(t: float, lag: float = 1.0) -> tuple[float, float]:
+        d, v = _stop_and_go(t - lag)
+        return d - _stop_and_go(-lag)[0], v
+
+    follower = (_box(-1.0, 1.0, 79.5, 84.0, 10, 63), follower_motion, 2, 12, 0.0)  # 7 m behind when standing
+    assert _counted(_run([car, follower], frames=340)) == 2
+
+
 def test_a_roof_still_watched_when_its_truck_leaves_the_view_is_no_vehicle():
     """A truck's roof, a group of its own, is watched before it joins (it could be a faster follower); the truck
     leaves the view meanwhile. The roof, still matching the truck's speed, is the truck's leftover: it is
