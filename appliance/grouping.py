@@ -1046,7 +1046,7 @@ class Grouper:
     @staticmethod
     def _held(watch: list[tuple[float, float, bool]]) -> bool:
         """Whether a watch (time, speed ratio, matched) matched its vehicle in WATCH_MIN_HITS frames with the
-        ratio steady over them (see WATCH_K_DRIFT; a group's first speeds, still settling, match nothing)."""
+        ratio steady (see WATCH_K_DRIFT; the frames of a group watched on unsettled speeds, NaN, left out)."""
         if sum(hit for _, _, hit in watch) < WATCH_MIN_HITS:
             return False
         ks = np.array([k for _, k, _ in watch if np.isfinite(k)])

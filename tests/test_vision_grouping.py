@@ -143,7 +143,8 @@ def test_a_roof_whose_first_speeds_read_as_its_cars_is_watched_before_it_counts(
     is first seen as a group of its own while its features' speeds are still settling, reading the car's speed
     or below it. Level with the car it would lie beyond it, but some height puts it on the car, and the image
     between the two is one body: it is watched before it is reported, and joins the car once its speed shows
-    its height. A car following 7 m behind at the same speed, also watched, stays a vehicle of its own."""
+    its height. A car following 7 m behind at the same speed, watched too (some height would put it on the car),
+    stays a vehicle of its own."""
     ch = SiteZones(parse_site(site_dict())).camera[2]
     monkeypatch.setitem(globals(), "SETTLING", first_ratio * (ch - 1.5) / ch)  # read by _run
     car = (_box(-1.0, 1.0, 60.0, 64.5, 10, 41), -20.0, 2, 0, 0.0)
