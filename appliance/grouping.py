@@ -929,10 +929,7 @@ class Grouper:
                     self._retire_quietly(tr.id, members, retire)
                     continue
             if host is not None:
-                self._link(members, groups[host])
-                self.fvid[members] = host
-                self.shade[members] = self._by_shadow
-                self.tracks[host].merged = True
+                self._absorb(members, host, groups[host], shade=self._by_shadow)
                 self.tracks.pop(tr.id)
                 self._end_as_part(tr, st, host, out)
                 continue
@@ -952,9 +949,7 @@ class Grouper:
         for part, host in self._rigid_parts(t):
             st = next((o for o in out if o.id == part), None)
             out = [o for o in out if o.id != part]
-            self._link(groups[part], groups[host])
-            self.fvid[groups[part]] = host
-            self.tracks[host].merged = True
+            self._absorb(groups[part], host, groups[host])
             self._end_as_part(self.tracks.pop(part), st, host, out)
         self.late = self._late_slots(t, small, s, age)
         slots = np.concatenate(retire) if retire else np.zeros(0, np.int64)
@@ -1291,6 +1286,15 @@ class Grouper:
             out.append(self._finish(tr, exited=False))
         elif tr.reported and tr.trajectory:
             self.lost.append((t, tr.lane_index, tr.trajectory[-1][2], abs(tr.last.vy) if tr.last else 0.0))
+
+    def _absorb(self, members: np.ndarray, host: int, host_members: np.ndarray, shade: bool | None = None) -> None:
+        """A part's features become vehicle host's for good (linked to its features; with shade, marked as a
+        shadow of it or not)."""
+        self._link(members, host_members)
+        self.fvid[members] = host
+        if shade is not None:
+            self.shade[members] = shade
+        self.tracks[host].merged = True
 
     def _end_as_part(self, tr: VehicleTrack, st: VehicleState | None, host: int, out: list[VehicleState]) -> None:
         """Group tr ends as a part of vehicle host: never a vehicle of its own (the pipeline drops its held report,

@@ -74,17 +74,6 @@ def _prepare(scene: Scene, seconds: float, tag: str, size: tuple[int, int] = (64
     return out
 
 
-def scene_encoders(scenes: list[Scene]) -> dict[str, int]:
-    """How many scenes each encoder wrote (their truth's meta.json): the same scene encoded by OpenCV's mp4v
-    instead of ffmpeg's H.264 replays differently, so sweeps compare only on footage from one encoder."""
-    out: dict[str, int] = {}
-    for sc in scenes:
-        meta = json.loads((sc.dir / "truth" / "meta.json").read_text())
-        enc = meta.get("encoder", "unknown")
-        out[enc] = out.get(enc, 0) + 1
-    return out
-
-
 def _lane_rows(name: str, whole: TruthComparison, periods: TruthComparison) -> list[dict]:
     """One row per lane: its count over the whole scene, its errors over the compared periods."""
     rows = []
@@ -187,6 +176,9 @@ def sweep(presets: str, seeds: str, seconds: float, work: Path, size: str, tag: 
     parts: dict[str, dict] = {}
     lanes = []  # every scene's lanes, for the Edie parts' sums
     loops = []  # every scene's loop actuations by class
+    # how many scenes each encoder wrote: the same scene encoded by OpenCV's mp4v instead of ffmpeg's H.264
+    # replays differently, so sweeps compare only on footage from one encoder
+    encoders: dict[str, int] = {}
     for sc in scenes:
         try:
             truth, results = load_truth(sc.dir / "truth"), load_results(sc.dir / f"{tag}.sqlite")
@@ -195,6 +187,8 @@ def sweep(presets: str, seeds: str, seconds: float, work: Path, size: str, tag: 
         whole = compare_with_truth(truth, results, include_partial=True)
         periods = compare_with_truth(truth, results, include_partial=partial)
         rows += _lane_rows(sc.name, whole, periods)
+        enc = truth["meta"].get("encoder", "unknown")
+        encoders[enc] = encoders.get(enc, 0) + 1
         if results["crossings"]:
             causes[sc.name] = cause_counts(compare_crossings_with_truth(truth, results["crossings"]))
         by_class = scene_loop_classes(truth, results)
@@ -206,7 +200,6 @@ def sweep(presets: str, seeds: str, seconds: float, work: Path, size: str, tag: 
             lanes += scene_lanes
     summary = summarise(rows)
     click.echo(format_sweep(rows, summary, complete_only=not partial))
-    encoders = scene_encoders(scenes)
     click.echo("Scenes encoded with: " + "; ".join(f"{e} ({n})" for e, n in encoders.items()))
     total = {kind: {k: sum(c[kind][k] for c in causes.values()) for k in names}
              for kind, names in (("extra", EXTRA_CAUSES), ("missed", MISSED_CAUSES))}
