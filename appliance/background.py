@@ -83,10 +83,10 @@ class Background:
         return (np.count_nonzero(a > b + NOISE) <= MAX_BRIGHT_SHARE * n
                 and np.count_nonzero(a < b - NOISE) >= MIN_ATTACHED_DARK * n)
 
-    def is_joined(self, img: np.ndarray, pts: np.ndarray, other: np.ndarray) -> bool:
+    def is_joined(self, img: np.ndarray, pts: np.ndarray, other: np.ndarray, share: float | None = None) -> bool:
         """True when the image along the line between the nearest two of points pts and other differs from
-        the road (in MIN_JOINED_SHARE of its pixels): the two are parts of one body (two vehicles have road
-        between them)."""
+        the road (in MIN_JOINED_SHARE of its pixels, or share): the two are parts of one body (two vehicles have
+        road between them)."""
         if not self.ready or len(pts) == 0 or len(other) == 0:
             return False
         d = ((pts[:, None, :] - other[None, :, :]) ** 2).sum(axis=2)
@@ -97,7 +97,7 @@ class Background:
         xs = np.clip(np.round(np.linspace(a[0], b[0], n)).astype(np.int64), 0, w - 1)
         ys = np.clip(np.round(np.linspace(a[1], b[1], n)).astype(np.int64), 0, h - 1)
         diff = np.abs(img[ys, xs].astype(np.int16) - self.bg[ys, xs].astype(np.int16))
-        return np.count_nonzero(diff > NOISE) >= MIN_JOINED_SHARE * n
+        return np.count_nonzero(diff > NOISE) >= (MIN_JOINED_SHARE if share is None else share) * n
 
     def is_shadow(self, img: np.ndarray, pts: np.ndarray, plain_ok: bool = True) -> bool:
         """True when the box around image points pts (n x 2, x y) differs from the road only by a shadow.

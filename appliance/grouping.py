@@ -136,6 +136,27 @@ RIGID_DV_MPS = 4.0
 RIGID_RES_M = 0.2
 RIGID_K = (1.04, 1.5)
 RIGID_EVERY = 10
+# A group too small to be reported that lay, over the last ADOPT_S, at k times a reported vehicle's distance from
+# the camera's foot plus a constant (k from ADOPT_K_MIN: high on it; within ADOPT_RES_SHARE of its own distance,
+# as a pixel spans more road further away) while that vehicle travelled ADOPT_TRAVEL_M or more, lying on it with
+# that height undone, its speed now k times the vehicle's (within ADOPT_K_TOL), and the image between the two one
+# body, is a part of that vehicle: the few corners found on a bus's or a truck's top lie too far from its front in
+# projection to link with it, and they show how long it is (checked every ADOPT_EVERY frames of the group, so that
+# the length reaches the loops before the vehicle does). A follower closing in moves like a part only up to the
+# speed difference of traffic in one lane, below ADOPT_K_MIN; one keeping its distance looks like a part of a long
+# vehicle (its top at k over its leader's, a constant further on), and only the road seen between the two tells
+# them apart. Hence only while the vehicle moves at ADOPT_MIN_MPS or faster: followers then keep a gap of 15 m or
+# more (a second's headway), longer than what a car hides of the road behind it 45 m from a 10 m pole (8 m); in
+# slower traffic a follower's top is seen right over the car ahead, as a long vehicle's would be.
+ADOPT_MIN_MPS = 15.0
+ADOPT_S = 2.0
+ADOPT_K_MIN = 1.1
+ADOPT_K_TOL = 0.1
+ADOPT_RES_SHARE = 0.008
+ADOPT_TRAVEL_M = 5.0
+ADOPT_POINTS = 10
+ADOPT_EVERY = 5
+ADOPT_JOINED_SHARE = 0.95  # of the image between the two differing from the road (a follower's gap shows)
 MAX_HEIGHT_M = 4.5  # the tallest vehicle: bounds the height magnification of a fragment
 SPEED_WINDOW_S = 0.5  # speeds compared for the height magnification are averaged over this long
 # Reported length: each feature's place on the road behind the near end, from a straight-line fit of its
@@ -654,6 +675,8 @@ class VehicleTrack:
     # the near end's speed over SPEED_WINDOW_S (or None), for the trajectory's (last t, length) it was taken on
     _near_vy: tuple[tuple[float | None, int], float | None] = ((None, 0), None)
     trajectory: list[tuple[float, float, float]] = field(default_factory=list)
+    path: list[tuple[float, float, float]] = field(default_factory=list)  # a small group's (t, X, Y) medians
+    adopted: float = 0.0  # the furthest place behind the near end of a part it adopted (see ADOPT_K_MIN)
 
     def steady_vy(self, fallback: float) -> float:
         """The along-road speed of the near end over the last SPEED_WINDOW_S (steadier than one frame's), or
@@ -795,7 +818,7 @@ class Grouper:
 
     def step(self, t: float, s: np.ndarray, px: np.ndarray, lane: np.ndarray, alive: np.ndarray, age: np.ndarray,
              is_shadow: Callable[[np.ndarray, np.ndarray | None], bool] | None = None,
-             is_joined: Callable[[np.ndarray, np.ndarray], bool] | None = None,
+             is_joined: Callable[..., bool] | None = None,
              ) -> tuple[list[VehicleState], np.ndarray]:
         """Returns the vehicle states for this frame and the feature slots to retire (finalised vehicles).
         is_shadow(points, caster points) tells whether image points lie on a shadow of the caster's (with
@@ -821,7 +844,7 @@ class Grouper:
             lambda a, host: host in groups and is_shadow(px[a], px[groups[host]]))
         # joined(group slots, host id): the image test for a group and the host being one body
         joined = None if is_joined is None else (
-            lambda a, host: host in groups and is_joined(px[a], px[groups[host]]))
+            lambda a, host, share=None: host in groups and is_joined(px[a], px[groups[host]], share))
         for vid in list(self.tracks):
             if vid not in groups:
                 self._lose(self.tracks.pop(vid), t, out)
@@ -951,20 +974,25 @@ class Grouper:
             out = [o for o in out if o.id != part]
             self._absorb(groups[part], host, groups[host])
             self._end_as_part(self.tracks.pop(part), st, host, out)
-        self.late = self._late_slots(t, small, s, age)
+        med = None
+        if small:
+            members = np.concatenate([m for _, m in small])
+            med = group_medians(members, np.cumsum([0] + [len(m) for _, m in small]), s, age)
+        self.late = self._late_slots(t, small, med, age)
+        for vid, members, host in self._adopted(t, small, med, joined):
+            self._absorb(members, host, groups[host], shade=True)  # high up: no part of its place on the road
+            self.tracks.pop(vid)
         slots = np.concatenate(retire) if retire else np.zeros(0, np.int64)
         return [self._grounded(st, ground.get(st.id)) for st in out], slots
 
-    def _late_slots(self, t: float, small: list[tuple[int, np.ndarray]], s: np.ndarray, age: np.ndarray
+    def _late_slots(self, t: float, small: list[tuple[int, np.ndarray]], med: np.ndarray | None, age: np.ndarray
                     ) -> np.ndarray:
         """Per slot: whether it may link late (see LATE_BESIDE_M): a settled feature of a settled group of a
-        lane that is too small to be reported, moves, and is alone, where its lane has another such group."""
+        lane that is too small to be reported (med: their group_medians), moves, and is alone, where its lane
+        has another such group."""
         late = np.zeros(len(self.fvid), np.bool_)
         if not small:
             return late
-        members = np.concatenate([m for _, m in small])
-        starts = np.cumsum([0] + [len(m) for _, m in small])
-        med = group_medians(members, starts, s, age)
         keep = np.abs(med[:, 2]) > MOVING_MPS
         lanes = np.array([self.tracks[vid].lane_index for vid, _ in small])
         ready = lanes[keep & (med[:, 3] >= SETTLED_AGE)]
@@ -1038,6 +1066,62 @@ class Grouper:
                     break
         return out
 
+    def _adopted(self, t: float, small: list[tuple[int, np.ndarray]], med: np.ndarray | None,
+                 joined: Callable[..., bool] | None) -> list[tuple[int, np.ndarray, int]]:
+        """(group, members, vehicle) for the groups too small to be reported (med: their group_medians) that are
+        high parts of a reported vehicle (see ADOPT_K_MIN); records each one's path and sets the vehicle's
+        adopted place."""
+        out: list[tuple[int, np.ndarray, int]] = []
+        if not small or self.foot is None or joined is None:
+            return out
+        k_lo, k_hi = ADOPT_K_MIN * (1.0 - ADOPT_K_TOL), self.k_max * (1.0 + ADOPT_K_TOL)  # of the speed ratio
+        due = []
+        for (vid, members), row in zip(small, med):
+            tr = self.tracks[vid]
+            tr.path.append((t, row[0], row[1]))
+            if tr.frames % ADOPT_EVERY == 0:
+                tr.path = tr.path[bisect.bisect_left(tr.path, (t - ADOPT_S,)):]
+                if len(tr.path) >= ADOPT_POINTS:
+                    due.append((tr, members, row))
+        hosts = [h for h in self.tracks.values() if h.reported and h.last is not None and h.last.t == t
+                 and abs(h.last.vy) >= ADOPT_MIN_MPS] if due else []
+        if not hosts:
+            return out
+        fx, fy = self.foot[0], self.foot[1]
+        lane, hvy, d = np.array([(h.lane_index, h.last.vy, h.trajectory[-1][2] - fy) for h in hosts]).T
+        plane = np.array([tr.lane_index for tr, _, _ in due])
+        x, q, vy = np.array([row[:3] for _, _, row in due]).T
+        q = q - fy
+        r = vy[:, None] / hvy[None, :]  # [part, vehicle] speed ratio: k is within ADOPT_K_TOL of it (tested below)
+        cand = ((np.abs(plane[:, None] - lane[None, :]) <= 1) & (r >= k_lo) & (r <= k_hi) & (q[:, None] * d > 0)
+                & (np.abs(d) < np.abs(q)[:, None]) & (np.abs(q)[:, None] <= self.k_max * (np.abs(d) + ELEVATED_LENGTH_M + 1.0)))
+        for a in np.flatnonzero(cand.any(axis=1)):
+            tr, members, _ = due[a]
+            ys = _by_time(tr.path, t - ADOPT_S)
+            best = None
+            for i in np.flatnonzero(cand[a]):
+                h = hosts[i]
+                pairs = _paired(ys, h.trajectory, t - ADOPT_S)
+                if len(pairs) < ADOPT_POINTS or np.ptp(pairs[:, 1]) < ADOPT_TRAVEL_M:
+                    continue
+                k, c, res = _line_fit(pairs[:, 1], pairs[:, 2], fy)
+                # its speed over the vehicle's now tells the same height (a near end held while the lowest
+                # feature changes, or at the image's edge, makes a follower's fit look like a part's)
+                if not ADOPT_K_MIN <= k <= self.k_max or abs(r[a, i] / k - 1.0) > ADOPT_K_TOL \
+                        or res > ADOPT_RES_SHARE * abs(q[a]) or (best is not None and res >= best[0]):
+                    continue
+                place = c / k * np.sign(d[i])
+                gx = fx + (x[a] - fx) / k
+                x_lo = min(h.x_lo, h.x_hi - ELEVATED_WIDTH_M) - FRAGMENT_X_MARGIN_M
+                x_hi = max(h.x_hi, h.x_lo + ELEVATED_WIDTH_M) + FRAGMENT_X_MARGIN_M
+                if -1.0 <= place <= max(h.own_length, ELEVATED_LENGTH_M) + 1.0 and x_lo <= gx <= x_hi \
+                        and joined(members, h.id, ADOPT_JOINED_SHARE):
+                    best = (res, h, place)
+            if best is not None:
+                best[1].adopted = max(best[1].adopted, best[2])
+                out.append((tr.id, members, best[1].id))
+        return out
+
     @staticmethod
     def _held(watch: list[tuple[float, float, bool]]) -> bool:
         """Whether a watch (time, speed ratio, matched) matched its vehicle in WATCH_MIN_HITS frames with the
@@ -1082,20 +1166,21 @@ class Grouper:
         if sign > 0 and tr.fitted and tr.ground:
             # a receding vehicle is seen best as it enters, nearest the camera; its far end moves with it
             # from then on (a length that kept changing would add distance or time it did not travel)
-            return tr.ground[0]
+            return max(tr.ground[0], tr.adopted)
         behind = fit_places(members, age, s, self.fit, self.fit_vid, tr.id, near_y - self.foot[1], self.foot[1],
                             self.k_max, FIT_FRAMES, FIT_TRAVEL_SD_M ** 2, FIT_NEIGHBOUR_M)
         # until some are fitted, or while a feature not yet fitted lies further (a fragment that just joined):
-        # the last length, or at first the features' span
+        # the last length, or at first the features' span; never short of a part it adopted (a top's rear edge
+        # is the vehicle's rear: nothing of it is hidden beyond)
         if np.isnan(behind):
-            return tr.ground[0] if tr.ground else length
+            return max(tr.ground[0] if tr.ground else length, tr.adopted)
         tr.fitted = True
-        if behind < FIT_MIN_EXTENT_M:
+        if behind < FIT_MIN_EXTENT_M and not tr.adopted:
             return NOMINAL_LENGTH_M
         share = HIDDEN_SHARE_FRONT if sign > 0 else HIDDEN_SHARE_REAR
         # never longer than the features' span now, whose far end is projected beyond the vehicle: a misfit
         # does not make a vehicle longer than what is seen of it
-        return min(behind / (1.0 - share), length)
+        return max(min(behind / (1.0 - share), length), tr.adopted)
 
     @staticmethod
     def _grounded(st: VehicleState, ground: tuple[float, float, int] | None) -> VehicleState:
@@ -1364,14 +1449,34 @@ class Grouper:
         return self._grounded(replace(st, finished=True, exited=exited, trajectory=None), tr.ground)
 
 
+def _paired(part: list[tuple[float, float, float]] | dict[float, float], host: list[tuple[float, float, float]],
+            t0: float) -> np.ndarray:
+    """(t, host's Y, part's Y) at the times from t0 that both were seen (every point of one frame carries that
+    frame's time); part: its points, or their Y by time (see _by_time)."""
+    ph = part if isinstance(part, dict) else _by_time(part, t0)
+    return np.array([(p[0], p[2], ph[p[0]]) for p in host[bisect.bisect_left(host, (t0,)):]
+                     if p[0] in ph]).reshape(-1, 3)
+
+
+def _by_time(points: list[tuple[float, float, float]], t0: float) -> dict[float, float]:
+    """Y by time of the points from t0."""
+    return {p[0]: p[2] for p in points[bisect.bisect_left(points, (t0,)):]}
+
+
+def _line_fit(ya: np.ndarray, yb: np.ndarray, fy: float) -> tuple[float, float, float]:
+    """(k, c, RMS residual) of the least-squares line yb - fy = k (ya - fy) + c (ya not all equal)."""
+    a, b = ya - fy, yb - fy
+    da, db = a - a.mean(), b - b.mean()
+    k = float(np.dot(da, db) / np.dot(da, da))
+    r = db - k * da
+    return k, float(b.mean() - k * a.mean()), float(np.sqrt(np.dot(r, r) / len(r)))
+
+
 def _moves_rigidly(part: list[tuple[float, float, float]], host: list[tuple[float, float, float]], fy: float) -> bool:
     """Whether over their last RIGID_S together the part's near end lay at k times the host's distance from the
     camera's foot plus a constant (an elevated part of it: RIGID_K), within RIGID_RES_M, while the host's speed
     changed by RIGID_DV_MPS or more."""
-    t0 = min(part[-1][0], host[-1][0]) - RIGID_S
-    ph = {round(p[0], 3): p[2] for p in part[bisect.bisect_left(part, (t0,)):]}
-    pairs = np.array([(p[0], p[2], ph[round(p[0], 3)]) for p in host[bisect.bisect_left(host, (t0,)):]
-                      if round(p[0], 3) in ph])
+    pairs = _paired(part, host, min(part[-1][0], host[-1][0]) - RIGID_S)
     if len(pairs) < 10 or pairs[-1, 0] - pairs[0, 0] < 0.9 * RIGID_S:
         return False
     tt, ya, yb = pairs.T
@@ -1380,9 +1485,7 @@ def _moves_rigidly(part: list[tuple[float, float, float]], host: list[tuple[floa
     vs = np.convolve(v, np.ones(n) / n, mode="valid")
     if vs.max() - vs.min() < RIGID_DV_MPS:
         return False
-    a = np.column_stack([ya - fy, np.ones(len(ya))])
-    (k, c), *_ = np.linalg.lstsq(a, yb - fy, rcond=None)
-    res = float(np.sqrt(np.mean((a @ np.array([k, c]) - (yb - fy)) ** 2)))
+    k, _, res = _line_fit(ya, yb, fy)
     return RIGID_K[0] <= k <= RIGID_K[1] and res <= RIGID_RES_M
 
 

@@ -240,7 +240,8 @@ class VisionPipeline:
         self.background.update(img)
         states, retire = self.grouper.step(frame.t, tr.s, tr.px, tr.lane, tr.alive, tr.age,
                                            lambda pts, caster: self._is_shadow(img, pts, caster),
-                                           lambda pts, other: self.background.is_joined(img, pts, other))
+                                           lambda pts, other, share=None: self.background.is_joined(img, pts, other,
+                                                                                                    share))
         if len(retire):
             tr.kill(retire)
         self._note_covers(frame.t)

@@ -60,7 +60,7 @@ def _run(objects: list[tuple], frames: int = 90, lanes=None,
                 slot += 1
         is_shadow = None if shadow_seen is None else (
             lambda pts, caster, f=f: shadow_seen(f) and (shadow_at is None or (caster is not None and shadow_at(pts))))
-        is_joined = None if joined is None else (lambda a, b: joined)
+        is_joined = None if joined is None else (lambda a, b, share=None: joined)
         states, retire = g.step(t, s, px, lane, alive, age, is_shadow, is_joined)
         alive[retire] = False
         for st in states:
@@ -764,3 +764,26 @@ def test_a_car_creeping_over_the_count_line_in_a_queue_is_counted(speed):
     car = (_box(-1.0, 1.0, COUNT_Y + 3.0, COUNT_Y + 7.0, 10, 72), -speed, 2, 0, 0.0)
     seen = _run([car], frames=90)
     assert _counted(seen) == 1, {k: len(v) for k, v in seen.items()}
+
+
+def _lengths(seen: dict[int, list]) -> dict[int, float]:
+    """Per vehicle: the longest length it was reported with."""
+    return {vid: max(st.length for st in ss) for vid, ss in seen.items()}
+
+
+def test_a_buses_lone_roof_corners_give_its_length_but_a_followers_low_corner_does_not():
+    """A 12 m bus shows a group of corners low on its front and, far behind them in projection, a few lone corners
+    along its roof's edge (3 m up), too far from each other to link. Each keeps 1.27 times the front's distance
+    from the camera's foot plus a constant, and lies on the bus with that height undone: the bus is reported
+    about 12 m long, and no corner of its roof is a vehicle. A lone corner low on a car following 8 m behind
+    at the same speed (one the tracker kept of it) moves like a part only at k 1, no part high on a vehicle:
+    the car ahead stays a car's length."""
+    front = (_box(0.8, 2.6, 38.0, 38.4, 10, 71), -16.0, 2, 0, 0.5)
+    roof = [(np.array([[1.7, 38.0 + place]]), -16.0, 2, 0, 3.0) for place in (4.0, 8.0, 11.5)]
+    seen = _run([front, *roof], frames=40, joined=True)
+    assert len(seen) == 1, _firsts(seen)
+    assert 10.0 <= next(iter(_lengths(seen).values())) <= 13.0, _lengths(seen)
+    car = (_box(0.8, 2.6, 38.0, 38.4, 10, 72), -16.0, 2, 0, 0.5)
+    follower = (np.array([[1.7, 38.0 + 4.5 + 8.0]]), -16.0, 2, 0, 0.0)
+    seen = _run([car, follower], frames=40, joined=True)
+    assert max(_lengths(seen).values()) < 6.0, _lengths(seen)

@@ -37,7 +37,7 @@ def _run(objects: list[tuple[np.ndarray, float, int, int]], frames: int = 90,
                     lane[slot], alive[slot], age[slot] = ln, True, f - first
                 slot += 1
         states, retire = g.step(f * DT, s, px, lane, alive, age,
-                                is_joined=None if joined is None else (lambda a, b: joined))
+                                is_joined=None if joined is None else (lambda a, b, share=None: joined))
         alive[retire] = False
         for st in states:
             seen.setdefault(st.id, []).append(st)
