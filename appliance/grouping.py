@@ -1312,14 +1312,15 @@ class Grouper:
         """A vehicle in a neighbouring lane of the same direction whose side part this group is: same
         speed, near ends level, and either a receding vehicle's flank (joint footprint no wider than one
         vehicle, or than a tall one's projection where the image between them is its body) or only a shadow
-        on the road (the image says so). A reported group is compared by its
+        on the road (the image says so; a low sun casts one across the next lane into the lane beyond). A reported group is compared by its
         speed over a while, and with a vehicle reported after it only as its shadow or a much smaller flank
         (a receding vehicle's shadow cast ahead of it enters the view first); sets self._place for the votes."""
         for vid, other in self.tracks.items():
             o = other.last
             if vid == tr.id or o is None or o.t != st.t or other.lane_index == tr.lane_index:
                 continue
-            if abs(other.lane_index - tr.lane_index) != 1 or o.vy * vy <= 0:
+            lanes_apart = abs(other.lane_index - tr.lane_index)
+            if lanes_apart > 2 or o.vy * vy <= 0:
                 continue
             if not other.reported and (other.first_t > tr.first_t or other.n_max < self.p.min_features):
                 continue
@@ -1342,7 +1343,9 @@ class Grouper:
             gap = max(tr.x_lo - other.x_hi, other.x_lo - tr.x_hi)
             width = max(tr.x_hi, other.x_hi) - min(tr.x_lo, other.x_lo)
             lo, hi = _extent(o, other.own_length)
-            if flank and sign > 0 and gap <= SIDE_GAP_M and width <= SIDE_MAX_WIDTH_M:
+            if lanes_apart == 2:
+                pass  # only its shadow reaches across a lane (below)
+            elif flank and sign > 0 and gap <= SIDE_GAP_M and width <= SIDE_MAX_WIDTH_M:
                 if dy <= SIDE_DY_M and dv <= SIDE_SPEED_TOL:
                     return vid
                 # a reported part is watched longer (the votes): anywhere along the vehicle, speeds less sure

@@ -251,6 +251,19 @@ def test_a_shadow_the_image_test_sees_in_two_frames_of_three_joins_its_vehicle(g
     assert _counted(_run([car, shade], frames=80, lanes=lanes, shadow_seen=lambda f: False)) == 2
 
 
+def test_a_long_shadow_cast_over_the_next_lane_into_the_one_beyond_joins_its_vehicle():
+    """Under a low sun a car's shadow reaches across the next lane: its far edge, tracked as a group of its own,
+    lies two lanes from the car, level with it and at its speed, the road between them shadowed. It joins the
+    car; with no image test passing, the two are two vehicles (a car two lanes over looks just the same)."""
+    lanes = (("approaching", -5.0, -1.5), ("approaching", -1.5, 2.0), ("approaching", 2.0, 5.5))
+    car = (_box(3.0, 4.7, 52.0, 56.0, 10, 51), -12.0, 3, 0, 0.0)
+    shade = (_box(-3.5, -2.5, 53.0, 57.0, 8, 52), -12.0, 1, 0, 0.0)
+    on_shade = lambda pts: bool((pts[:, 0] < -1.5).all())  # noqa: E731 (the image test finds only it a shadow)
+    seen = _run([car, shade], frames=80, lanes=lanes, shadow_seen=lambda f: f >= 10, shadow_at=on_shade)
+    assert _counted(seen) == 1, {k: len(v) for k, v in seen.items()}
+    assert _counted(_run([car, shade], frames=80, lanes=lanes, shadow_seen=lambda f: False)) == 2
+
+
 @pytest.mark.parametrize("dragged_m", [0.0, 1.2])
 def test_a_group_standing_still_before_it_moves_dates_its_trajectory_from_the_move(dragged_m):
     """Features on an occluder's edge where vehicles emerge stand still until the vehicle comes out and
