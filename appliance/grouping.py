@@ -822,8 +822,8 @@ class Grouper:
              ) -> tuple[list[VehicleState], np.ndarray]:
         """Returns the vehicle states for this frame and the feature slots to retire (finalised vehicles).
         is_shadow(points, caster points) tells whether image points lie on a shadow of the caster's (with
-        caster None: on a shadow at all); is_joined(points, other points) whether the image between the two
-        is one body, not the road."""
+        caster None: on a shadow at all); is_joined(points, other points[, share]) whether the image between the
+        two is one body, not the road (in that share of it, or the image test's own)."""
         p = self.p
         live = np.flatnonzero(alive)
         retire: list[np.ndarray] = []

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import replace
+from functools import partial
 
 import cv2
 import numpy as np
@@ -240,8 +241,7 @@ class VisionPipeline:
         self.background.update(img)
         states, retire = self.grouper.step(frame.t, tr.s, tr.px, tr.lane, tr.alive, tr.age,
                                            lambda pts, caster: self._is_shadow(img, pts, caster),
-                                           lambda pts, other, share=None: self.background.is_joined(img, pts, other,
-                                                                                                    share))
+                                           partial(self.background.is_joined, img))
         if len(retire):
             tr.kill(retire)
         self._note_covers(frame.t)

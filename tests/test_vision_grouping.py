@@ -258,7 +258,10 @@ def test_a_long_shadow_cast_over_the_next_lane_into_the_one_beyond_joins_its_veh
     lanes = (("approaching", -5.0, -1.5), ("approaching", -1.5, 2.0), ("approaching", 2.0, 5.5))
     car = (_box(3.0, 4.7, 52.0, 56.0, 10, 51), -12.0, 3, 0, 0.0)
     shade = (_box(-3.5, -2.5, 53.0, 57.0, 8, 52), -12.0, 1, 0, 0.0)
-    on_shade = lambda pts: bool((pts[:, 0] < -1.5).all())  # noqa: E731 (the image test finds only it a shadow)
+
+    def on_shade(pts: np.ndarray) -> bool:  # the image test finds only it a shadow
+        return bool((pts[:, 0] < -1.5).all())
+
     seen = _run([car, shade], frames=80, lanes=lanes, shadow_seen=lambda f: f >= 10, shadow_at=on_shade)
     assert _counted(seen) == 1, {k: len(v) for k, v in seen.items()}
     assert _counted(_run([car, shade], frames=80, lanes=lanes, shadow_seen=lambda f: False)) == 2
