@@ -171,6 +171,9 @@ FIT_NEIGHBOUR_M = 1.0
 # night only its lights and their beam on the road ahead): it is reported at a typical car's length.
 FIT_MIN_EXTENT_M = 0.5
 NOMINAL_LENGTH_M = 4.5
+# ... as is one measured shorter than the shortest car whose low part is wider than a motorcycle with its rider
+SHORTEST_CAR_M = 3.0
+SINGLE_TRACK_MAX_WIDTH_M = 1.2
 # The far end seen is a roofline, not the bumper: a car's windscreen top lies about a third of its length
 # behind its front (the bonnet is hidden from behind), its rear window's top about a sixth ahead of its rear.
 HIDDEN_SHARE_FRONT = 0.3
@@ -1180,7 +1183,10 @@ class Grouper:
         share = HIDDEN_SHARE_FRONT if sign > 0 else HIDDEN_SHARE_REAR
         # never longer than the features' span now, whose far end is projected beyond the vehicle: a misfit
         # does not make a vehicle longer than what is seen of it
-        return max(min(behind / (1.0 - share), length), tr.adopted)
+        g = max(min(behind / (1.0 - share), length), tr.adopted)
+        if g < SHORTEST_CAR_M and tr.x_hi - tr.x_lo >= SINGLE_TRACK_MAX_WIDTH_M:
+            return NOMINAL_LENGTH_M  # wider than a motorcycle, shorter than any car: only its front is seen
+        return g
 
     @staticmethod
     def _grounded(st: VehicleState, ground: tuple[float, float, int] | None) -> VehicleState:

@@ -803,3 +803,14 @@ def test_a_buses_lone_roof_corners_give_its_length_but_a_followers_low_corner_do
     follower = (np.array([[1.7, 38.0 + 4.5 + 8.0]]), -16.0, 2, 0, 0.0)
     seen = _run([car, follower], frames=40, joined=True)
     assert max(_lengths(seen).values()) < 6.0, _lengths(seen)
+
+
+def test_a_car_seen_only_at_its_front_is_a_car_but_a_motorcycle_stays_short():
+    """A car whose features all lie on its front (bumper and bonnet, 1.2 m of it) measures far shorter than any car:
+    as wide as a car low down, it is reported at a typical car's length, not put in the motorcycle class. A
+    motorcycle with the same features over its 0.7 m width keeps its measured length."""
+    for x0, x1, shortest, longest in ((0.8, 2.6, 4.0, 5.0), (1.4, 2.1, 0.5, 2.1)):  # 2.1 m: the motorcycle class
+        vehicle = (_box(x0, x1, 38.0, 39.2, 10, 73), -16.0, 2, 0, 0.5)
+        seen = _run([vehicle], frames=40)
+        last = [ss[-1].length for ss in seen.values()]
+        assert len(last) == 1 and shortest <= last[0] <= longest, (x0, x1, last)
