@@ -199,6 +199,7 @@ SHADOW_MAX_WIDTH_M = 9.0
 # checks that the road between the two is shadowed too)
 SHADOW_GAP_M = 6.0
 SHADOW_DY_M = 6.0
+SHADOW_LANES = 2  # ... across the next lane into the one beyond
 SHADOW_SPEED_TOL = 0.3  # a new group's features have not settled to its speed yet
 SIDE_LATE_HOST_K = 2.0  # a flank reported before its vehicle joins it if the vehicle has this many times its features
 # A group that the image test finds to be only a shadow on the road in most frames of its first watch
@@ -1326,7 +1327,7 @@ class Grouper:
             if vid == tr.id or o is None or o.t != st.t or other.lane_index == tr.lane_index:
                 continue
             lanes_apart = abs(other.lane_index - tr.lane_index)
-            if lanes_apart > 2 or o.vy * vy <= 0:
+            if lanes_apart > SHADOW_LANES or o.vy * vy <= 0:
                 continue
             if not other.reported and (other.first_t > tr.first_t or other.n_max < self.p.min_features):
                 continue
@@ -1349,7 +1350,7 @@ class Grouper:
             gap = max(tr.x_lo - other.x_hi, other.x_lo - tr.x_hi)
             width = max(tr.x_hi, other.x_hi) - min(tr.x_lo, other.x_lo)
             lo, hi = _extent(o, other.own_length)
-            if lanes_apart == 2:
+            if lanes_apart > 1:
                 pass  # only its shadow reaches across a lane (below)
             elif flank and sign > 0 and gap <= SIDE_GAP_M and width <= SIDE_MAX_WIDTH_M:
                 if dy <= SIDE_DY_M and dv <= SIDE_SPEED_TOL:

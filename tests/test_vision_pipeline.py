@@ -689,9 +689,9 @@ def test_a_shadow_joined_to_its_vehicle_is_no_part_of_its_place_across_the_road(
 
 
 def test_a_shadow_cast_two_lanes_across_is_no_vehicle(monkeypatch):
-    """Under a very low sun a car's shadow reaches two lanes across: the part in the far lane has no caster
-    in its neighbouring lane to join. Found to be only a shadow on the road in most frames of its first
-    watch, it is retired without being reported."""
+    """Under a very low sun a car's shadow reaches two lanes across. The part in the far lane joins its caster
+    two lanes over; and where it would not (looking for casters in the next lane only), it is found to be only
+    a shadow on the road in most frames of its first watch and retired without being reported."""
     import appliance.background as background
     import appliance.grouping as grouping
 
@@ -706,13 +706,18 @@ def test_a_shadow_cast_two_lanes_across_is_no_vehicle(monkeypatch):
         finished, _ = run(pipe, scene, 6.5)
         return sorted(f.x for f in finished)
 
+    lone_tests = grouping.LONE_SHADOW_TESTS
+    monkeypatch.setattr(grouping, "SHADOW_LANES", 1)
     monkeypatch.setattr(grouping, "LONE_SHADOW_TESTS", 10**6)  # never judged a lone shadow
     without = lanes_of_finished()
     assert without[-1] > 1.75, without  # the scene does make the far part a "vehicle" (in lane 3)
-    monkeypatch.undo()
-    monkeypatch.setattr(background, "READY_UPDATES", 1)
+    monkeypatch.setattr(grouping, "LONE_SHADOW_TESTS", lone_tests)
     xs = lanes_of_finished()
     assert sum(1 for x in xs if x < -1.75) == 1 and xs[-1] < 1.75, xs  # the car; nothing in lane 3
+    monkeypatch.setattr(grouping, "SHADOW_LANES", 2)
+    monkeypatch.setattr(grouping, "LONE_SHADOW_TESTS", 10**6)
+    xs = lanes_of_finished()
+    assert sum(1 for x in xs if x < -1.75) == 1 and xs[-1] < 1.75, xs  # the caster two lanes over takes it
 
 
 def test_a_feature_stopping_faster_than_a_vehicle_brakes_is_dropped(site):

@@ -197,10 +197,12 @@ def test_no_standing_call_without_a_vehicle_standing(case, monkeypatch):
 
 @pytest.mark.parametrize("standing_calls", [True, False])
 def test_the_pipeline_and_the_measures_keep_a_standing_car_on_its_loop(standing_calls):
-    """The whole path: a car stops over the loop for 40 s, then drives off. The tracker loses it as it stops.
-    With standing calls the loop gives one actuation for it (after its leader's), counted once, on from the
-    car's arrival to its leaving within half a second, its call on all along; without them
-    (tracking.standing_calls = false) the actuation ends within 2 s of the car stopping."""
+    """The whole path: a car stops over the loop for 40 s, then drives off. The loop gives one actuation for it
+    (after its leader's), counted once, on from the car's arrival to its leaving within half a second, its call
+    on all along, with the image's standing calls or without them (tracking.standing_calls = false): here the
+    tracker keeps the standing car, and its footprint (only its front shows corners, so it is reported at a
+    car's length) covers the loop. (Measured at the length of its front, 1-2 m, it used to leave the loop as it
+    stopped; the standing call then held the loop.)"""
     d = site_dict()
     d["loops"] = [{"id": "L1", "lane": 1, "channel": 1, "y_m": LOOP_Y[0], "length_m": LOOP_Y[1] - LOOP_Y[0]}]
     d["tracking"] = {"standing_calls": standing_calls}
@@ -223,9 +225,6 @@ def test_the_pipeline_and_the_measures_keep_a_standing_car_on_its_loop(standing_
     assert tm.channels()[0].count == 2
     assert events[0].t_off < 10.5  # the leader's, over the loop from 9.15 to 9.9 s
     assert events[1].t_on == pytest.approx(t_on, abs=0.5)
-    if not standing_calls:
-        assert events[1].t_off < 16.0
-        return
     assert events[1].t_off == pytest.approx(t_off, abs=0.5)
     assert all(c for t, c in calls if t_on + 0.5 < t < t_off - 0.5)
 
