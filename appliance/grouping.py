@@ -1093,12 +1093,14 @@ class Grouper:
             return out
         fx, fy = self.foot[0], self.foot[1]
         lane, hvy, d = np.array([(h.lane_index, h.last.vy, h.trajectory[-1][2] - fy) for h in hosts]).T
-        plane = np.array([tr.lane_index for tr, _, _ in due])
+        part_lane = np.array([tr.lane_index for tr, _, _ in due])
         x, q, vy = np.array([row[:3] for _, _, row in due]).T
         q = q - fy
         r = vy[:, None] / hvy[None, :]  # [part, vehicle] speed ratio: k is within ADOPT_K_TOL of it (tested below)
-        cand = ((np.abs(plane[:, None] - lane[None, :]) <= 1) & (r >= k_lo) & (r <= k_hi) & (q[:, None] * d > 0)
-                & (np.abs(d) < np.abs(q)[:, None]) & (np.abs(q)[:, None] <= self.k_max * (np.abs(d) + ELEVATED_LENGTH_M + 1.0)))
+        # beyond the vehicle's near end, and no further than the tallest vehicle's longest top projects
+        qa, da = np.abs(q)[:, None], np.abs(d)[None, :]
+        cand = ((np.abs(part_lane[:, None] - lane[None, :]) <= 1) & (r >= k_lo) & (r <= k_hi) & (q[:, None] * d > 0)
+                & (da < qa) & (qa <= self.k_max * (da + ELEVATED_LENGTH_M + 1.0)))
         for a in np.flatnonzero(cand.any(axis=1)):
             tr, members, _ = due[a]
             ys = _by_time(tr.path, t - ADOPT_S)
@@ -1319,9 +1321,10 @@ class Grouper:
         """A vehicle in a neighbouring lane of the same direction whose side part this group is: same
         speed, near ends level, and either a receding vehicle's flank (joint footprint no wider than one
         vehicle, or than a tall one's projection where the image between them is its body) or only a shadow
-        on the road (the image says so; a low sun casts one across the next lane into the lane beyond). A reported group is compared by its
-        speed over a while, and with a vehicle reported after it only as its shadow or a much smaller flank
-        (a receding vehicle's shadow cast ahead of it enters the view first); sets self._place for the votes."""
+        on the road (the image says so; a low sun casts one across the next lane into the lane beyond, see
+        SHADOW_LANES). A reported group is compared by its speed over a while, and with a vehicle reported after
+        it only as its shadow or a much smaller flank (a receding vehicle's shadow cast ahead of it enters the
+        view first); sets self._place for the votes."""
         for vid, other in self.tracks.items():
             o = other.last
             if vid == tr.id or o is None or o.t != st.t or other.lane_index == tr.lane_index:
