@@ -636,6 +636,12 @@ def motion_class(s: np.ndarray, age: np.ndarray) -> np.ndarray:
     return m
 
 
+def _elevated_reach(lo: float, hi: float) -> float:
+    """How far along the road an elevated part of a vehicle with footprint [lo, hi] may lie: as far as the
+    longest vehicle reaches, with a metre's slack at each end."""
+    return max(hi, lo + 1.0 + ELEVATED_LENGTH_M + 1.0)
+
+
 def _extent(o: VehicleState, length: float | None = None) -> tuple[float, float]:
     """Along-road span a vehicle surely covers: its features' span (or its own length without joined
     fragments), at least MIN_LENGTH_M, from its near end (the end nearer the camera, lower Y: the front of an
@@ -681,6 +687,11 @@ class VehicleTrack:
     trajectory: list[tuple[float, float, float]] = field(default_factory=list)
     path: list[tuple[float, float, float]] = field(default_factory=list)  # a small group's (t, X, Y) medians
     adopted: float = 0.0  # the furthest place behind the near end of a part it adopted (see ADOPT_K_MIN)
+
+    def elevated_x(self) -> tuple[float, float]:
+        """Across the road, where an elevated part of it may lie (its height undone): its footprint, widened to
+        ELEVATED_WIDTH_M."""
+        return min(self.x_lo, self.x_hi - ELEVATED_WIDTH_M), max(self.x_hi, self.x_lo + ELEVATED_WIDTH_M)
 
     def steady_vy(self, fallback: float) -> float:
         """The along-road speed of the near end over the last SPEED_WINDOW_S (steadier than one frame's), or
@@ -1118,9 +1129,9 @@ class Grouper:
                     continue
                 place = c / k * np.sign(d[i])
                 gx = fx + (x[a] - fx) / k
-                x_lo = min(h.x_lo, h.x_hi - ELEVATED_WIDTH_M) - FRAGMENT_X_MARGIN_M
-                x_hi = max(h.x_hi, h.x_lo + ELEVATED_WIDTH_M) + FRAGMENT_X_MARGIN_M
-                if -1.0 <= place <= max(h.own_length, ELEVATED_LENGTH_M) + 1.0 and x_lo <= gx <= x_hi \
+                x_lo, x_hi = h.elevated_x()
+                if -1.0 <= place <= max(h.own_length, ELEVATED_LENGTH_M) + 1.0 \
+                        and x_lo - FRAGMENT_X_MARGIN_M <= gx <= x_hi + FRAGMENT_X_MARGIN_M \
                         and joined(members, h.id, ADOPT_JOINED_SHARE):
                     best = (res, h, place)
             if best is not None:
@@ -1249,7 +1260,7 @@ class Grouper:
             if tr.reported and (not other.reported or other.report_t > tr.report_t):
                 continue  # a reported vehicle only joins one reported before it
             lo, hi = _extent(o, other.own_length)
-            if g_hi < lo or g_lo > max(hi, lo + 1.0 + ELEVATED_LENGTH_M + 1.0):
+            if g_hi < lo or g_lo > _elevated_reach(lo, hi):
                 continue
             ov = other.steady_vy(o.vy) if tr.reported else o.vy
             if ov * vy <= 0:
@@ -1267,9 +1278,8 @@ class Grouper:
                     m = FRAGMENT_X_MARGIN_NO_CAMERA_M
             on = lo <= gy <= hi and other.x_lo - m <= gx <= other.x_hi + m
             if not on and k > LEVEL_K and self.foot is not None and joined is not None:
-                x_lo = min(other.x_lo, other.x_hi - ELEVATED_WIDTH_M)
-                x_hi = max(other.x_hi, other.x_lo + ELEVATED_WIDTH_M)
-                on = (lo <= gy <= max(hi, lo + 1.0 + ELEVATED_LENGTH_M + 1.0) and x_lo - m <= gx <= x_hi + m
+                x_lo, x_hi = other.elevated_x()
+                on = (lo <= gy <= _elevated_reach(lo, hi) and x_lo - m <= gx <= x_hi + m
                       and joined(members, vid))  # the image test last: it is the dearest
             if on:
                 self._place = gy - o.y_front  # where on the vehicle the group lies
@@ -1296,11 +1306,11 @@ class Grouper:
             if other.lane_index != tr.lane_index and other.own_length < SIDE_TALL_HOST_M:
                 continue  # only a tall vehicle's top is seen over the next lane
             lo, hi = _extent(o, other.own_length)
-            hi = max(hi, lo + 1.0 + ELEVATED_LENGTH_M + 1.0)
+            hi = _elevated_reach(lo, hi)
             # the heights (k from LEVEL_K to k_max) that put the near end on the vehicle, along and across
             k_along = ((y - fy) / (hi - fy) if hi > fy else np.inf, (y - fy) / (lo - fy) if lo > fy else np.inf)
-            x_lo = min(other.x_lo, other.x_hi - ELEVATED_WIDTH_M) - FRAGMENT_X_MARGIN_M
-            x_hi = max(other.x_hi, other.x_lo + ELEVATED_WIDTH_M) + FRAGMENT_X_MARGIN_M
+            x_lo, x_hi = other.elevated_x()
+            x_lo, x_hi = x_lo - FRAGMENT_X_MARGIN_M, x_hi + FRAGMENT_X_MARGIN_M
             k_lo, k_hi = max(LEVEL_K + 0.01, k_along[0]), min(self.k_max, k_along[1])  # elevated: watched
             if k_lo > k_hi:
                 continue
@@ -1462,13 +1472,11 @@ class Grouper:
         return self._grounded(replace(st, finished=True, exited=exited, trajectory=None), tr.ground)
 
 
-def _paired(part: list[tuple[float, float, float]] | dict[float, float], host: list[tuple[float, float, float]],
-            t0: float) -> np.ndarray:
+def _paired(part: dict[float, float], host: list[tuple[float, float, float]], t0: float) -> np.ndarray:
     """(t, host's Y, part's Y) at the times from t0 that both were seen (every point of one frame carries that
-    frame's time); part: its points, or their Y by time (see _by_time)."""
-    ph = part if isinstance(part, dict) else _by_time(part, t0)
-    return np.array([(p[0], p[2], ph[p[0]]) for p in host[bisect.bisect_left(host, (t0,)):]
-                     if p[0] in ph]).reshape(-1, 3)
+    frame's time); part: its Y by time (see _by_time)."""
+    return np.array([(p[0], p[2], part[p[0]]) for p in host[bisect.bisect_left(host, (t0,)):]
+                     if p[0] in part]).reshape(-1, 3)
 
 
 def _by_time(points: list[tuple[float, float, float]], t0: float) -> dict[float, float]:
@@ -1489,7 +1497,8 @@ def _moves_rigidly(part: list[tuple[float, float, float]], host: list[tuple[floa
     """Whether over their last RIGID_S together the part's near end lay at k times the host's distance from the
     camera's foot plus a constant (an elevated part of it: RIGID_K), within RIGID_RES_M, while the host's speed
     changed by RIGID_DV_MPS or more."""
-    pairs = _paired(part, host, min(part[-1][0], host[-1][0]) - RIGID_S)
+    t0 = min(part[-1][0], host[-1][0]) - RIGID_S
+    pairs = _paired(_by_time(part, t0), host, t0)
     if len(pairs) < 10 or pairs[-1, 0] - pairs[0, 0] < 0.9 * RIGID_S:
         return False
     tt, ya, yb = pairs.T
