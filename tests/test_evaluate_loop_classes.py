@@ -29,6 +29,7 @@ def test_each_truth_actuation_takes_the_nearest_free_one_of_its_channel():
     assert car.on_truth_s == pytest.approx(0.5) and car.on_result_s == pytest.approx(0.4)
     assert artic.on_truth_s == pytest.approx(1.2) and artic.on_result_s == pytest.approx(0.4)
     assert artic.length_medians() == pytest.approx((16.0, 4.5))
+    assert car.class_right() == 1.0 and artic.class_right() == 0.0  # 4.5 m is a small vehicle, 16 m a large one
     total = merge([rows, loop_classes(truth[:1], result[:1], {1: "car"})])
     assert (total["car"].truth, total["car"].matched) == (3, 2)
 
@@ -36,7 +37,7 @@ def test_each_truth_actuation_takes_the_nearest_free_one_of_its_channel():
 def test_an_actuation_without_a_measured_length_counts_its_on_time_only():
     rows = loop_classes([_ev(1, 5.0, 5.5, 7, 4.4)], [_ev(1, 5.1, 5.5, length=None)], {7: "car"})
     assert rows["car"].matched == 1 and rows["car"].on_result_s == pytest.approx(0.4)
-    assert rows["car"].length_medians() is None
+    assert rows["car"].length_medians() is None and rows["car"].class_right() is None
 
 
 def test_the_perfect_trackers_loops_match_the_truths_class_by_class(tmp_path):
@@ -57,3 +58,4 @@ def test_the_perfect_trackers_loops_match_the_truths_class_by_class(tmp_path):
         assert c.on_result_s == pytest.approx(c.on_truth_s, rel=0.02), name
         med = c.length_medians()
         assert med is not None and med[1] == pytest.approx(med[0], rel=0.02), name
+        assert c.class_right() >= 0.95, name  # a length within a frame's travel of a class bound may fall over it

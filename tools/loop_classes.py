@@ -10,6 +10,9 @@ from pathlib import Path
 
 import numpy as np
 
+from appliance.config import MeasuresConfig
+from appliance.loops import length_class
+
 # A result actuation is the truth's if it is on the same channel and comes on this close in time (a loop call
 # comes on as the front reaches the loop: a near end found a frame or two late is still that vehicle).
 MATCH_S = 0.4
@@ -24,6 +27,14 @@ class ClassLoops:
     on_truth_s: float = 0.0  # over the matched actuations
     on_result_s: float = 0.0
     lengths: list[tuple[float, float]] = field(default_factory=list)  # (truth, result) where both are known
+
+    def class_right(self, measures: MeasuresConfig | None = None) -> float | None:
+        """Share of the actuations with both lengths whose measured length falls in the truth length's class
+        (the default length classes unless measures gives others)."""
+        if not self.lengths:
+            return None
+        m = measures or MeasuresConfig()
+        return sum(length_class(t, m) == length_class(r, m) for t, r in self.lengths) / len(self.lengths)
 
     def length_medians(self) -> tuple[float, float] | None:
         if not self.lengths:
@@ -105,14 +116,16 @@ def merge(parts: list[dict[str, ClassLoops]]) -> dict[str, ClassLoops]:
 
 def format_loop_classes(rows: dict[str, ClassLoops], indent: str = "  ") -> str:
     lines = [f"{indent}{'class':<11} {'truth':>5} {'matched':>7}   {'on-time result/truth':<24} "
-             f"{'length result/truth (medians)'}"]
+             f"{'length result/truth (medians)':<31} {'class right'}"]
     for name in sorted(rows, key=lambda n: -rows[n].truth):
         c = rows[name]
         on = (f"{c.on_result_s:7.1f}/{c.on_truth_s:.1f} s ({100 * (c.on_result_s / c.on_truth_s - 1):+.0f} %)"
               if c.on_truth_s > 0 else "-")
         med = c.length_medians()
         ln = f"{med[1]:5.1f}/{med[0]:.1f} m" if med else "-"
-        lines.append(f"{indent}{name:<11} {c.truth:>5} {c.matched:>7}   {on:<24} {ln}")
+        right = c.class_right()
+        cr = f"{100 * right:5.0f} %" if right is not None else "-"
+        lines.append(f"{indent}{name:<11} {c.truth:>5} {c.matched:>7}   {on:<24} {ln:<31} {cr}")
     return "\n".join(lines)
 
 
@@ -122,5 +135,6 @@ def to_json(rows: dict[str, ClassLoops]) -> dict:
         med = c.length_medians()
         out[name] = {"truth": c.truth, "matched": c.matched, "on_truth_s": round(c.on_truth_s, 2),
                      "on_result_s": round(c.on_result_s, 2),
-                     "length_truth_m": med and round(med[0], 2), "length_result_m": med and round(med[1], 2)}
+                     "length_truth_m": med and round(med[0], 2), "length_result_m": med and round(med[1], 2),
+                     "class_right": c.class_right()}
     return out
