@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from numba import njit
 
 UPDATE_EVERY = 4  # frames between background updates (moving vehicles never stay long enough to be learnt)
 FAST_UPDATES = 100  # the first updates move this many grey levels at once (a quick start) ...
@@ -26,8 +27,7 @@ CELL_PX = 6  # ... compared in cells of this size, those this dark (inside the s
 CELL_DARK_SHARE = 0.9
 MIN_CELLS = 3  # ... when the box holds this many textured ones
 MIN_CELL_SHARE = 0.6  # ... of which this share must correlate
-INNER_KERNEL = np.ones((3, 3), np.uint8)  # else over the dark area without its edge pixels
-MIN_INNER_PX = 12
+MIN_INNER_PX = 12  # else over the dark area without its edge pixels (when this many are left)
 MIN_ATTACHED_DARK = 0.6  # the image between a vehicle and its shadow is shadow too (a shadow touches its caster)
 MIN_JOINED_SHARE = 0.85  # the image between two parts of one vehicle is that vehicle, not the road
 
@@ -104,60 +104,128 @@ class Background:
         Where the road is too plain for the texture test, an evenly dimmed box counts if plain_ok."""
         if not self.ready or len(pts) == 0:
             return False
-        h, w = img.shape
-        x0, y0 = np.floor(pts.min(axis=0)).astype(int) - PAD_PX
-        x1, y1 = np.ceil(pts.max(axis=0)).astype(int) + PAD_PX + 1
-        x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w), min(y1, h)
-        if x1 - x0 < 3 or y1 - y0 < 3:
-            return False
-        a = img[y0:y1, x0:x1].astype(np.float32)
-        b = self.bg[y0:y1, x0:x1].astype(np.float32)
-        n = a.size
-        if np.count_nonzero(a > b + NOISE) > MAX_BRIGHT_SHARE * n:
-            return False
-        dark = a < b - NOISE
-        if np.count_nonzero(dark) < MIN_DARK_SHARE * n:
-            return False
-        rr = a[dark] / np.maximum(b[dark], 1.0)
-        ratio = float(np.median(rr))
-        if not SHADOW_RATIO[0] <= ratio <= SHADOW_RATIO[1]:
-            return False
-        if np.count_nonzero(np.abs(rr - ratio) <= CORE_TOL) < MIN_CORE_SHARE * len(rr):
-            return False
-        # The road's texture is compared cell by cell inside the dark area: a vehicle next to its own shadow
-        # would pass a test over the whole box (the shadow's part correlates), its body's cells do not.
-        nc, good = _cell_correlation(a, b, dark)
-        if nc >= MIN_CELLS:
-            return good >= MIN_CELL_SHARE * nc
-        # too small for cells: the whole dark area away from its edges (penumbra, the caster's outline)
-        inner = cv2.erode(dark.view(np.uint8), INNER_KERNEL).view(bool)
-        if np.count_nonzero(inner) < MIN_INNER_PX:
-            inner = dark
-        ai, bi = a[inner], b[inner]
-        sb, sa = float(bi.std()), float(ai.std())
-        if sb < MIN_TEXTURE:
-            return plain_ok and np.count_nonzero(np.abs(ai / np.maximum(bi, 1.0) - ratio) <= CORE_TOL) >= \
-                FLAT_CORE_SHARE * len(ai)
-        if sa < 1e-3:
-            return False
-        ncc = float(np.mean((ai - ai.mean()) * (bi - bi.mean()))) / (sa * sb)
-        return ncc >= MIN_TEXTURE_NCC
+        return bool(shadow_at(img, self.bg, np.asarray(pts, np.float64), plain_ok))
 
 
-def _cell_correlation(a: np.ndarray, b: np.ndarray, dark: np.ndarray) -> tuple[int, int]:
-    """(textured dark cells, those where image and road correlate) over CELL_PX square cells of a box."""
+@njit(cache=True)
+def shadow_at(img: np.ndarray, bg: np.ndarray, pts: np.ndarray, plain_ok: bool) -> bool:
+    """shadow_box on the box around image points pts (n x 2, x y), PAD_PX wider, within the image; False for
+    a box narrower than 3 pixels."""
+    h, w = img.shape
+    x0, y0 = int(np.floor(pts[:, 0].min())) - PAD_PX, int(np.floor(pts[:, 1].min())) - PAD_PX
+    x1, y1 = int(np.ceil(pts[:, 0].max())) + PAD_PX + 1, int(np.ceil(pts[:, 1].max())) + PAD_PX + 1
+    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w), min(y1, h)
+    if x1 - x0 < 3 or y1 - y0 < 3:
+        return False
+    return shadow_box(img[y0:y1, x0:x1], bg[y0:y1, x0:x1], plain_ok)
+
+
+@njit(cache=True)
+def shadow_box(img: np.ndarray, bg: np.ndarray, plain_ok: bool) -> bool:  # noqa: C901
+    """Background.is_shadow's test on one box (the image's and the road's pixels): brightened nowhere, dimmed
+    by one factor (the median ratio of its dark pixels), the road's texture seen through the dimmed part, cell
+    by cell where there are MIN_CELLS textured dark cells, else over the dark area away from its edges (a plain
+    road: an even dimming, if plain_ok). Reference: appliance.kernels_ref.shadow_box_ref."""
+    h, w = img.shape
+    n = h * w
+    a = img.astype(np.float32)
+    b = bg.astype(np.float32)
+    bright = 0
+    dark = np.zeros((h, w), np.bool_)
+    nd = 0
+    for y in range(h):
+        for x in range(w):
+            if a[y, x] > b[y, x] + NOISE:
+                bright += 1
+            elif a[y, x] < b[y, x] - NOISE:
+                dark[y, x] = True
+                nd += 1
+    if bright > MAX_BRIGHT_SHARE * n or nd < MIN_DARK_SHARE * n:
+        return False
+    rr = np.empty(nd, np.float32)
+    k = 0
+    for y in range(h):
+        for x in range(w):
+            if dark[y, x]:
+                rr[k] = a[y, x] / max(b[y, x], np.float32(1.0))
+                k += 1
+    m = nd // 2
+    part = np.partition(rr, m)  # the median as NumPy's: the middle value, or the mean of the two
+    ratio = part[m] if nd % 2 else np.float32((part[:m].max() + part[m]) / np.float32(2.0))
+    if not SHADOW_RATIO[0] <= ratio <= SHADOW_RATIO[1]:
+        return False
+    core = 0
+    for i in range(nd):
+        if abs(rr[i] - ratio) <= np.float32(CORE_TOL):
+            core += 1
+    if core < MIN_CORE_SHARE * nd:
+        return False
+    # The road's texture is compared cell by cell inside the dark area: a vehicle next to its own shadow
+    # would pass a test over the whole box (the shadow's part correlates), its body's cells do not.
     c = CELL_PX
-    ny, nx = a.shape[0] // c, a.shape[1] // c
-    if ny == 0 or nx == 0:
-        return 0, 0
-
-    def cells(x: np.ndarray) -> np.ndarray:
-        return x[:ny * c, :nx * c].reshape(ny, c, nx, c).swapaxes(1, 2).reshape(ny * nx, c * c)
-
-    A, B = cells(a), cells(b)
-    A = A - A.mean(axis=1, keepdims=True)
-    B = B - B.mean(axis=1, keepdims=True)
-    sa, sb = np.sqrt((A * A).mean(axis=1)), np.sqrt((B * B).mean(axis=1))
-    ok = (cells(dark).mean(axis=1) >= CELL_DARK_SHARE) & (sb >= MIN_TEXTURE)
-    ncc = (A[ok] * B[ok]).mean(axis=1) / np.maximum(sa[ok] * sb[ok], 1e-6)
-    return int(ok.sum()), int(np.count_nonzero(ncc >= MIN_TEXTURE_NCC))
+    nc = good = 0
+    for cy in range(h // c):
+        for cx in range(w // c):
+            sa = sb = sd = 0.0
+            for y in range(cy * c, cy * c + c):
+                for x in range(cx * c, cx * c + c):
+                    sa += a[y, x]
+                    sb += b[y, x]
+                    sd += dark[y, x]
+            ma, mb = sa / (c * c), sb / (c * c)
+            vaa = vbb = vab = 0.0
+            for y in range(cy * c, cy * c + c):
+                for x in range(cx * c, cx * c + c):
+                    da, db = a[y, x] - ma, b[y, x] - mb
+                    vaa += da * da
+                    vbb += db * db
+                    vab += da * db
+            sda, sdb = np.sqrt(vaa / (c * c)), np.sqrt(vbb / (c * c))
+            if sd / (c * c) >= CELL_DARK_SHARE and sdb >= MIN_TEXTURE:
+                nc += 1
+                if vab / (c * c) / max(sda * sdb, 1e-6) >= MIN_TEXTURE_NCC:
+                    good += 1
+    if nc >= MIN_CELLS:
+        return good >= MIN_CELL_SHARE * nc
+    # too small for cells: the whole dark area away from its edges (penumbra, the caster's outline); the box's
+    # border erodes nothing (as cv2.erode's default border)
+    inner = np.zeros((h, w), np.bool_)
+    ni = 0
+    for y in range(h):
+        for x in range(w):
+            if not dark[y, x]:
+                continue
+            keep = True
+            for yy in range(max(y - 1, 0), min(y + 2, h)):
+                for xx in range(max(x - 1, 0), min(x + 2, w)):
+                    if not dark[yy, xx]:
+                        keep = False
+            inner[y, x] = keep
+            ni += keep
+    if ni < MIN_INNER_PX:
+        inner = dark
+        ni = nd
+    sa = sb = 0.0
+    for y in range(h):
+        for x in range(w):
+            if inner[y, x]:
+                sa += a[y, x]
+                sb += b[y, x]
+    ma, mb = sa / ni, sb / ni
+    vaa = vbb = vab = 0.0
+    flat = 0
+    for y in range(h):
+        for x in range(w):
+            if inner[y, x]:
+                da, db = a[y, x] - ma, b[y, x] - mb
+                vaa += da * da
+                vbb += db * db
+                vab += da * db
+                if abs(a[y, x] / max(b[y, x], np.float32(1.0)) - ratio) <= np.float32(CORE_TOL):
+                    flat += 1
+    sda, sdb = np.sqrt(vaa / ni), np.sqrt(vbb / ni)
+    if sdb < MIN_TEXTURE:
+        return plain_ok and flat >= FLAT_CORE_SHARE * ni
+    if sda < 1e-3:
+        return False
+    return vab / ni / (sda * sdb) >= MIN_TEXTURE_NCC

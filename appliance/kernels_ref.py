@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
+
+from appliance.background import (CELL_DARK_SHARE, CELL_PX, CORE_TOL, FLAT_CORE_SHARE, MAX_BRIGHT_SHARE,
+                                  MIN_CELL_SHARE, MIN_CELLS, MIN_CORE_SHARE, MIN_DARK_SHARE, MIN_INNER_PX,
+                                  MIN_TEXTURE, MIN_TEXTURE_NCC, NOISE, SHADOW_RATIO)
 
 from appliance.grouping import (APART, FAR, LATE_BESIDE_K, LATE_BESIDE_M, LATE_BESIDE_X_M, LATE_HOST_K_SPREAD,
                                 LATE_HOST_X_M, LINKED, MERGED_HI, MERGED_LO, MOVING, STANDING, UNSEEN)
@@ -258,3 +263,58 @@ def alone_groups_ref(sl, sx, sy, sv, big, fx, fy, k_max) -> np.ndarray:
             hosted |= ((gx >= x_lo - LATE_HOST_X_M) & (gx <= x_hi + LATE_HOST_X_M) & (gy >= by - 2.0)
                        & (gy <= by + 2.0 + length))
     return ~beside & ~(hosted & cand).any(axis=1)
+
+
+def shadow_box_ref(img: np.ndarray, bg: np.ndarray, plain_ok: bool = True) -> bool:
+    """appliance.background.shadow_box in NumPy (as Background.is_shadow was written before the kernel)."""
+    a = img.astype(np.float32)
+    b = bg.astype(np.float32)
+    n = a.size
+    if np.count_nonzero(a > b + NOISE) > MAX_BRIGHT_SHARE * n:
+        return False
+    dark = a < b - NOISE
+    if np.count_nonzero(dark) < MIN_DARK_SHARE * n:
+        return False
+    rr = a[dark] / np.maximum(b[dark], 1.0)
+    ratio = float(np.median(rr))
+    if not SHADOW_RATIO[0] <= ratio <= SHADOW_RATIO[1]:
+        return False
+    if np.count_nonzero(np.abs(rr - ratio) <= CORE_TOL) < MIN_CORE_SHARE * len(rr):
+        return False
+    # The road's texture is compared cell by cell inside the dark area: a vehicle next to its own shadow
+    # would pass a test over the whole box (the shadow's part correlates), its body's cells do not.
+    nc, good = _cell_correlation(a, b, dark)
+    if nc >= MIN_CELLS:
+        return good >= MIN_CELL_SHARE * nc
+    # too small for cells: the whole dark area away from its edges (penumbra, the caster's outline)
+    inner = cv2.erode(dark.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)
+    if np.count_nonzero(inner) < MIN_INNER_PX:
+        inner = dark
+    ai, bi = a[inner], b[inner]
+    sb, sa = float(bi.std()), float(ai.std())
+    if sb < MIN_TEXTURE:
+        return plain_ok and np.count_nonzero(np.abs(ai / np.maximum(bi, 1.0) - ratio) <= CORE_TOL) >= \
+            FLAT_CORE_SHARE * len(ai)
+    if sa < 1e-3:
+        return False
+    ncc = float(np.mean((ai - ai.mean()) * (bi - bi.mean()))) / (sa * sb)
+    return ncc >= MIN_TEXTURE_NCC
+
+
+def _cell_correlation(a: np.ndarray, b: np.ndarray, dark: np.ndarray) -> tuple[int, int]:
+    """(textured dark cells, those where image and road correlate) over CELL_PX square cells of a box."""
+    c = CELL_PX
+    ny, nx = a.shape[0] // c, a.shape[1] // c
+    if ny == 0 or nx == 0:
+        return 0, 0
+
+    def cells(x: np.ndarray) -> np.ndarray:
+        return x[:ny * c, :nx * c].reshape(ny, c, nx, c).swapaxes(1, 2).reshape(ny * nx, c * c)
+
+    A, B = cells(a), cells(b)
+    A = A - A.mean(axis=1, keepdims=True)
+    B = B - B.mean(axis=1, keepdims=True)
+    sa, sb = np.sqrt((A * A).mean(axis=1)), np.sqrt((B * B).mean(axis=1))
+    ok = (cells(dark).mean(axis=1) >= CELL_DARK_SHARE) & (sb >= MIN_TEXTURE)
+    ncc = (A[ok] * B[ok]).mean(axis=1) / np.maximum(sa[ok] * sb[ok], 1e-6)
+    return int(ok.sum()), int(np.count_nonzero(ncc >= MIN_TEXTURE_NCC))

@@ -358,3 +358,50 @@ def test_a_small_group_beside_a_vehicles_footprint_is_alone_only_beyond_the_host
     sl, sx, sy, sv = np.array([2], np.int64), np.array([0.0]), np.array([50.0]), np.array([-20.0])
     big = np.array([[2, gap + 1.0, 45.0, -20.0, gap, gap + 2.0, 4.5, 1]], np.float64)  # lane, x, near, v, x_lo..
     assert bool(alone_groups(sl, sx, sy, sv, big, 0.0, -20.0, 1.9)[0]) == alone
+
+
+def _shadow_cases(seed: int, n: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """(frame, road, feature points) with the road's texture under a shadow, a dark vehicle, an even dimming,
+    a half-dimmed box with a bright edge: each boundary of the shadow test is crossed one way or the other."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(n):
+        road = np.clip(rng.normal(120, rng.uniform(1, 20), (60, 80)), 0, 255).astype(np.uint8)
+        img = road.astype(np.float32)
+        x0, y0 = rng.integers(0, 50), rng.integers(0, 40)
+        x1, y1 = x0 + rng.integers(1, 40), y0 + rng.integers(1, 30)
+        box = img[y0:y1, x0:x1]
+        kind = i % 4
+        if kind == 0:
+            box[rng.integers(0, box.shape[0]):] *= rng.uniform(0.3, 0.8)
+        elif kind == 1:
+            body = box[box.shape[0] // 4:, box.shape[1] // 3:]
+            body[:] = rng.normal(60, 10, body.shape)
+        elif kind == 2:
+            box *= rng.uniform(0.3, 0.9)
+            box += rng.normal(0, 3, box.shape)
+        else:
+            box[:, : box.shape[1] // 2] *= 0.5
+            box[:2] = 250
+        frame = np.clip(img, 0, 255).astype(np.uint8)
+        pts = np.stack([rng.uniform(x0, x1, 4), rng.uniform(y0, y1, 4)], axis=1)
+        out.append((frame, road, pts))
+    return out
+
+
+def test_shadow_kernel_matches_reference():
+    """The shadow test's kernel (its box round the points, then the test) gives the NumPy reference's answer on
+    every case, shadows and not."""
+    from appliance.background import PAD_PX, shadow_at
+
+    answers = []
+    for frame, road, pts in _shadow_cases(5, 1500):
+        x0, y0 = np.floor(pts.min(axis=0)).astype(int) - PAD_PX
+        x1, y1 = np.ceil(pts.max(axis=0)).astype(int) + PAD_PX + 1
+        x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, 80), min(y1, 60)
+        for plain_ok in (True, False):
+            want = x1 - x0 >= 3 and y1 - y0 >= 3 and ref.shadow_box_ref(frame[y0:y1, x0:x1], road[y0:y1, x0:x1],
+                                                                         plain_ok)
+            assert bool(shadow_at(frame, road, pts, plain_ok)) == want
+            answers.append(want)
+    assert 0.2 < np.mean(answers) < 0.8  # both answers, often
