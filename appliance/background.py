@@ -166,12 +166,17 @@ def shadow_box(img: np.ndarray, bg: np.ndarray, plain_ok: bool) -> bool:  # noqa
     nc = good = 0
     for cy in range(h // c):
         for cx in range(w // c):
-            sa = sb = sd = 0.0
+            sd = 0
+            for y in range(cy * c, cy * c + c):
+                for x in range(cx * c, cx * c + c):
+                    sd += dark[y, x]
+            if sd / (c * c) < CELL_DARK_SHARE:
+                continue  # a cell of the shadow's edge, or of its caster
+            sa = sb = 0.0
             for y in range(cy * c, cy * c + c):
                 for x in range(cx * c, cx * c + c):
                     sa += a[y, x]
                     sb += b[y, x]
-                    sd += dark[y, x]
             ma, mb = sa / (c * c), sb / (c * c)
             vaa = vbb = vab = 0.0
             for y in range(cy * c, cy * c + c):
@@ -181,7 +186,7 @@ def shadow_box(img: np.ndarray, bg: np.ndarray, plain_ok: bool) -> bool:  # noqa
                     vbb += db * db
                     vab += da * db
             sda, sdb = np.sqrt(vaa / (c * c)), np.sqrt(vbb / (c * c))
-            if sd / (c * c) >= CELL_DARK_SHARE and sdb >= MIN_TEXTURE:
+            if sdb >= MIN_TEXTURE:
                 nc += 1
                 if vab / (c * c) / max(sda * sdb, 1e-6) >= MIN_TEXTURE_NCC:
                     good += 1

@@ -8,7 +8,6 @@ import numpy as np
 from appliance.background import (CELL_DARK_SHARE, CELL_PX, CORE_TOL, FLAT_CORE_SHARE, MAX_BRIGHT_SHARE,
                                   MIN_CELL_SHARE, MIN_CELLS, MIN_CORE_SHARE, MIN_DARK_SHARE, MIN_INNER_PX,
                                   MIN_TEXTURE, MIN_TEXTURE_NCC, NOISE, SHADOW_RATIO)
-
 from appliance.grouping import (APART, FAR, LATE_BESIDE_K, LATE_BESIDE_M, LATE_BESIDE_X_M, LATE_HOST_K_SPREAD,
                                 LATE_HOST_X_M, LINKED, MERGED_HI, MERGED_LO, MOVING, STANDING, UNSEEN)
 
