@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from appliance import kernels_ref as ref
+from appliance.background import PAD_PX, shadow_at
 from appliance.corners import select_spaced
 from appliance.grouping import (alone_groups, assign_ids, components, fit_places, group_medians, group_summary,
                                 pair_update)
@@ -392,8 +393,6 @@ def _shadow_cases(seed: int, n: int) -> list[tuple[np.ndarray, np.ndarray, np.nd
 def test_shadow_kernel_matches_reference():
     """The shadow test's kernel (its box round the points, then the test) gives the NumPy reference's answer on
     every case, shadows and not."""
-    from appliance.background import PAD_PX, shadow_at
-
     answers = []
     for frame, road, pts in _shadow_cases(5, 1500):
         x0, y0 = np.floor(pts.min(axis=0)).astype(int) - PAD_PX
