@@ -227,13 +227,18 @@ def fit_places_ref(members, age, s, fit, fit_vid, vid, d, cy, k_max, frames, min
     return float(places[1:][close][-1]) if close.any() else float(np.median(places))
 
 
-def group_summary_ref(members, s, px, age, near_m, spot_m, moving, standing) -> tuple:
+def group_summary_ref(members, s, px, age, near_m, spot_m, moving, standing, fast, fast_min) -> tuple:
     """Same contract as grouping.group_summary, with NumPy on the group's features."""
     v = np.abs(s[members, 3])
     body = members
     if np.median(v) > moving and (v >= standing).any():
         body = members[v >= standing]
-    rep = body[np.argmax(px[body, 1])]
+    settled = age[body] >= 3
+    v_max = fast * np.median(np.abs(s[body[settled], 3])) if settled.sum() >= 4 else np.inf
+    if v_max < fast * fast_min:
+        v_max = np.inf
+    cand = body[~(settled & (np.abs(s[body, 3]) > v_max))]
+    rep = cand[np.argmax(px[cand, 1])] if len(cand) else body[0]
     ys = s[body, 1]
     low = body[np.abs(ys - s[rep, 1]) < near_m]
     near = low[age[low] >= 3]

@@ -151,8 +151,8 @@ class VisionPipeline:
         """Compile (or load from cache) every numba kernel on dummy data, leaving no state behind."""
         from appliance.background import shadow_at
         from appliance.corners import select_spaced
-        from appliance.grouping import (alone_groups, assign_ids, components, fit_places, group_medians,
-                                        group_summary, isolate, pair_update, unbridge)
+        from appliance.grouping import (alone_groups, assign_ids, components, cut_beyond, fit_places,
+                                        group_medians, group_summary, isolate, pair_update, unbridge)
         from appliance.tracker import init_features, track_step
 
         p = self.p
@@ -178,11 +178,13 @@ class VisionPipeline:
         components(live, state, np.zeros(n, np.int64))
         owner = np.array([-1, 1, 2, -1], np.int64)
         kept = unbridge(live[:1], live, owner, s, state)
+        cut_beyond(live[:1], kept, np.zeros(1), np.ones(1), live, owner, np.ones(n, np.bool_), np.ones(n, np.int32),
+                   s, state)
         isolate(live[:1], kept, live, owner, state)
         labels, vids = np.zeros(n, np.int64), np.full(n, -1, np.int64)
         assign_ids(live, labels, vids, 1, np.zeros(0, np.int64))
         fit_places(live, np.full(n, 3, np.int32), s, np.zeros((n, 5)), vids, 1, 10.0, 0.0, 1.5, 10, 2.25, 1.0)
-        group_summary(live, s, px, np.full(n, 3, np.int32), 3.0, 1.0, 4.0, 1.0)
+        group_summary(live, s, px, np.full(n, 3, np.int32), 3.0, 1.0, 4.0, 1.0, 1.08, 10.0)
         group_medians(live, np.array([0, n], np.int64), s, np.zeros(n, np.int32))
         alone_groups(np.ones(1, np.int64), np.zeros(1), np.zeros(1), np.ones(1), np.zeros((1, 8)), 0.0, 0.0, 1.5)
         shadow_at(img, img, np.array([[8.0, 8.0], [16.0, 16.0]]), True)

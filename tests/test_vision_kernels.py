@@ -299,12 +299,30 @@ def test_group_summary_matches_reference():
         px = np.column_stack([rng.uniform(0, 640, n), rng.uniform(0, 480, n)])
         age = rng.integers(0, 8, n).astype(np.int32)
         members = np.sort(rng.choice(n, int(rng.integers(1, 15)), replace=False)).astype(np.int64)
-        got = group_summary(members, s, px, age, 3.0, 1.0, 4.0, 1.0)
-        want = ref.group_summary_ref(members, s, px, age, 3.0, 1.0, 4.0, 1.0)
+        got = group_summary(members, s, px, age, 3.0, 1.0, 4.0, 1.0, 1.08, 10.0)
+        want = ref.group_summary_ref(members, s, px, age, 3.0, 1.0, 4.0, 1.0, 1.08, 10.0)
         np.testing.assert_array_equal(got[0], want[0])
         assert got[1] == want[1] and list(got[2:]) == list(want[2:]), trial
         own_spot += got[5] != got[4]
     assert own_spot >= 5  # the spot speed comes from its own band of features, not only the velocity's
+
+
+@pytest.mark.parametrize("speed, expect_near", [(18.0, 4), (6.0, 5)])
+def test_near_end_is_no_faster_feature_below_the_vehicle(speed: float, expect_near: int):
+    """A car's settled features move at one speed; a feature lower in the image moving 15 % faster (the top of
+    the vehicle ahead, linked through a new corner) is not its near end at traffic speeds, both in the kernel
+    and in the reference. In a crawl speed ratios say nothing: the lowest feature stays the near end."""
+    n = 6
+    s = np.zeros((n, 4))
+    s[:, 1] = [60.0, 61.0, 62.0, 63.5, 59.0, 55.0]
+    s[:, 3] = -speed
+    s[5, 3] = -speed * 1.15
+    px = np.column_stack([np.full(n, 300.0), 200.0 - 2.0 * s[:, 1]])  # nearer the camera: lower in the image
+    age = np.full(n, 10, np.int32)
+    members = np.arange(n, dtype=np.int64)
+    for f in (group_summary, ref.group_summary_ref):
+        got = f(members, s, px, age, 3.0, 1.0, 4.0, 1.0, 1.08, 10.0)
+        assert got[1] == expect_near, f.__name__
 
 
 def test_group_medians_and_alone_groups_match_reference():
