@@ -384,11 +384,17 @@ def _isolate(i, keep, live, owner, state, owned_only):
     for j in live:
         if j == i or (keep >= 0 and owner[j] == keep) or (owned_only and owner[j] < 0):
             continue
-        if i < j:
-            if state[i, j] == LINKED:
-                state[i, j] = APART
-        elif state[j, i] == LINKED:
-            state[j, i] = APART
+        _unlink(state, i, j)
+
+
+@njit(cache=True)
+def _unlink(state, i, j):
+    """A linked pair of slots i, j is apart from now on."""
+    if i < j:
+        if state[i, j] == LINKED:
+            state[i, j] = APART
+    elif state[j, i] == LINKED:
+        state[j, i] = APART
 
 
 @njit(cache=True)
@@ -405,11 +411,7 @@ def cut_beyond(new, kept, kept_lo, kept_hi, live, owner, unrep, age, s, state):
         for j in live:
             if j == i or owner[j] >= 0 or age[j] == 0 or not unrep[j] or kept_lo[a] <= s[j, 1] <= kept_hi[a]:
                 continue
-            if i < j:
-                if state[i, j] == LINKED:
-                    state[i, j] = APART
-            elif state[j, i] == LINKED:
-                state[j, i] = APART
+            _unlink(state, i, j)
 
 
 @njit(cache=True)
