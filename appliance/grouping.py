@@ -38,7 +38,7 @@ MOVING_MPS = 4.0
 # not its near end but a part of the vehicle ahead (its roof's rear edge), linked to the group through a corner
 # between the two; taken for the near end it drags the vehicle ahead and speeds it up. Only from REP_FAST_MIN_MPS
 # (see PART_MIN_MPS: in a crawl a speed ratio says little). (On the synthetic scenes: lane-periods with the speed
-# within 2.5 % from 43 to 47 of 54, count-line misses and extras 488 to 463 together with cut_beyond.)
+# within 2.5 % from 43 to 46 of 54, count-line misses and extras 488 to 471.)
 REP_FAST_K = 1.08
 REP_FAST_MIN_MPS = 10.0
 NEAR_REP_M = 3.0  # features this close along the road to the representative one give the velocity
@@ -100,7 +100,6 @@ FOOT_UNCERTAINTY = 0.25
 # apart. (It costs the synthetic scenes 1-2 vehicles in four of 54 lanes, followers closing in on a car; from
 # 5 m/s it cost the shockwave scenes up to 4 a lane.)
 PART_MIN_MPS = 10.0
-CUT_SLACK_M = 1.0  # slack at each end of a vehicle's footprint for cut_beyond (see Grouper._footprints)
 GHOST = -1  # host id meaning "a vehicle finalised in the last GHOST_S seconds" (its leftovers)
 GHOST_S = 2.0
 # A new group that would join a vehicle as an elevated part (moving faster in projection) is watched first: a
@@ -395,23 +394,6 @@ def _unlink(state, i, j):
             state[i, j] = APART
     elif state[j, i] == LINKED:
         state[j, i] = APART
-
-
-@njit(cache=True)
-def cut_beyond(new, kept, kept_lo, kept_hi, live, owner, unrep, age, s, state):
-    """A feature found this frame that joins a vehicle (kept[a], its footprint along the road kept_lo..kept_hi
-    now, NaN for none) keeps no links to older features of groups not reported (unrep) lying ahead of that
-    footprint or behind it: a corner between a vehicle and a small group there (the first corners of its
-    follower, the tail of the one ahead) does not make the two one vehicle for good; the parts of a vehicle
-    beyond what is seen of it join it as fragments instead, by their height (see Grouper._host_of)."""
-    for a in range(new.shape[0]):
-        if kept[a] < 0 or np.isnan(kept_lo[a]):
-            continue
-        i = new[a]
-        for j in live:
-            if j == i or owner[j] >= 0 or age[j] == 0 or not unrep[j] or kept_lo[a] <= s[j, 1] <= kept_hi[a]:
-                continue
-            _unlink(state, i, j)
 
 
 @njit(cache=True)
@@ -819,9 +801,6 @@ class Grouper:
         owner = np.where(np.isin(self.fvid, ids), self.fvid, -1)
         new = live[age[live] == 0]
         kept = unbridge(new, live, owner, s, self.state) if len(new) else None
-        if kept is not None:
-            lo, hi = self._footprints(kept, t)
-            cut_beyond(new, kept, lo, hi, live, owner, ~np.isin(self.fvid, reported), age, s, self.state)
         components(live, self.state, self.labels)
         if kept is None or len(np.unique(kept[kept >= 0])) < 2:  # two vehicles are joined through two of them
             return
@@ -833,26 +812,6 @@ class Grouper:
         if joint.any():
             isolate(new[joint], kept[joint], live, owner, self.state)
             components(live, self.state, self.labels)
-
-    def _footprints(self, vids: np.ndarray, t: float) -> tuple[np.ndarray, np.ndarray]:
-        """Each vehicle's along-road span (see _extent) carried on from its last step to t, with CUT_SLACK_M
-        more at each end, for cut_beyond; NaN for -1, for a vehicle still in its lane's detection zone (far
-        away, where its parts, magnified by their heights, are still coming together) and for one slower than
-        PART_MIN_MPS (in a queue its parts could not be told by their height and join it only this way)."""
-        ext = {}
-        for v in set(vids.tolist()) - {-1}:
-            tr = self.tracks[v]
-            o = tr.last
-            if o is None or tr.lane_index <= 0 or not tr.trajectory:
-                continue
-            d0, d1 = self.zones.by_index(tr.lane_index).detection_y
-            if d0 <= tr.trajectory[-1][2] <= d1 or abs(o.vy) < PART_MIN_MPS:
-                continue
-            lo, hi = _extent(o, tr.own_length)
-            dy = o.vy * (t - o.t)
-            ext[v] = (lo + dy - CUT_SLACK_M, hi + dy + CUT_SLACK_M)
-        lo, hi = np.array([ext.get(v, (np.nan, np.nan)) for v in vids.tolist()]).reshape(-1, 2).T
-        return lo, hi
 
     def _elevated_parts(self, ids: np.ndarray) -> set[int]:
         """Reported vehicles (of ids) that move as an elevated part of a bigger reported one of their lane or the

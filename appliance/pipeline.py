@@ -151,8 +151,8 @@ class VisionPipeline:
         """Compile (or load from cache) every numba kernel on dummy data, leaving no state behind."""
         from appliance.background import shadow_at
         from appliance.corners import select_spaced
-        from appliance.grouping import (alone_groups, assign_ids, components, cut_beyond, fit_places,
-                                        group_medians, group_summary, isolate, pair_update, unbridge)
+        from appliance.grouping import (alone_groups, assign_ids, components, fit_places, group_medians,
+                                        group_summary, isolate, pair_update, unbridge)
         from appliance.tracker import init_features, track_step
 
         p = self.p
@@ -178,8 +178,6 @@ class VisionPipeline:
         components(live, state, np.zeros(n, np.int64))
         owner = np.array([-1, 1, 2, -1], np.int64)
         kept = unbridge(live[:1], live, owner, s, state)
-        cut_beyond(live[:1], kept, np.zeros(1), np.ones(1), live, owner, np.ones(n, np.bool_), np.ones(n, np.int32),
-                   s, state)
         isolate(live[:1], kept, live, owner, state)
         labels, vids = np.zeros(n, np.int64), np.full(n, -1, np.int64)
         assign_ids(live, labels, vids, 1, np.zeros(0, np.int64))

@@ -562,20 +562,6 @@ def test_new_features_between_two_queued_vehicles_do_not_join_them(gap_m: float,
     assert _counted(seen) == 2, _firsts(seen)
 
 
-def test_a_new_corner_does_not_join_a_follower_not_yet_reported_to_the_car_ahead():
-    """A car past its detection zone at 54 km/h; the car 10 m behind it shows only three corners so far (too few
-    to be reported). A corner found between the two lies within the connection distance of both: linked to both
-    it would make the follower a part of the car ahead for good (its count lost, the leader's near end dragged
-    back as the leader's own corners go). Beyond the leader's footprint the new corner keeps only its links to
-    the leader, and the follower, reported once more of its corners are found, counts on its own."""
-    leader = (_box(-1.0, 1.0, 50.0, 51.5, 6, 21), -15.0, 2, 0, 0.0)
-    follower = (_box(-1.0, 1.0, 60.5, 61.5, 3, 22), -15.0, 2, 0, 0.0)
-    more = (_box(-1.0, 1.0, 60.5, 63.0, 4, 23), -15.0, 2, 35, 0.0)  # the follower's other corners, found later
-    bridge = (np.array([[0.0, 56.0]]), -15.0, 2, 30, 0.0)  # 4.5 m from either car when found
-    seen = _run([leader, follower, more, bridge], frames=110)
-    assert _counted(seen) == 2, _firsts(seen)
-
-
 def test_a_queued_car_with_few_features_left_is_not_joined_to_the_one_behind_by_a_new_corner():
     """A car reported long ago has lost most of its corners as it crawls in a queue (two left, fewer than a
     vehicle needs to be reported); a corner found between it and the car behind lies within the connection
