@@ -34,11 +34,12 @@ STANDING, MOVING = 1, 2
 STANDING_MPS = 1.0
 MOVING_MPS = 4.0
 # A vehicle's lowest point in the image is its least magnified by height (bumper, grille): a settled feature lower
-# in the image than the rest of its group that moves over REP_FAST_K times their median speed in projection is
-# not its near end but a part of the vehicle ahead (its roof's rear edge), linked to the group through a corner
-# between the two; taken for the near end it drags the vehicle ahead and speeds it up. Only from REP_FAST_MIN_MPS
-# (see PART_MIN_MPS: in a crawl a speed ratio says little). (On the synthetic scenes: lane-periods with the speed
-# within 2.5 % from 43 to 46 of 54, count-line misses and extras 488 to 471.)
+# in the image than the rest of its group that moves over REP_FAST_K times the median speed of the group's settled
+# features (4 or more) in projection is not its near end but a part of the vehicle ahead (its roof's rear edge),
+# linked to the group through a corner between the two; taken for the near end it drags the vehicle's near end
+# ahead and speeds it up. Only from a median of REP_FAST_MIN_MPS (see PART_MIN_MPS: in a crawl a speed ratio says
+# little). (On the synthetic scenes: lane-periods with the speed within 2.5 % from 43 to 46 of 54, count-line
+# misses and extras 488 to 471.)
 REP_FAST_K = 1.08
 REP_FAST_MIN_MPS = 10.0
 NEAR_REP_M = 3.0  # features this close along the road to the representative one give the velocity
@@ -383,17 +384,11 @@ def _isolate(i, keep, live, owner, state, owned_only):
     for j in live:
         if j == i or (keep >= 0 and owner[j] == keep) or (owned_only and owner[j] < 0):
             continue
-        _unlink(state, i, j)
-
-
-@njit(cache=True)
-def _unlink(state, i, j):
-    """A linked pair of slots i, j is apart from now on."""
-    if i < j:
-        if state[i, j] == LINKED:
-            state[i, j] = APART
-    elif state[j, i] == LINKED:
-        state[j, i] = APART
+        if i < j:
+            if state[i, j] == LINKED:
+                state[i, j] = APART
+        elif state[j, i] == LINKED:
+            state[j, i] = APART
 
 
 @njit(cache=True)
@@ -588,10 +583,10 @@ def group_summary(members, s, px, age, near_m, spot_m, moving, standing, fast, f
     while their median moves above ``moving``: road texture just uncovered beside a vehicle, linked before its
     speed showed, is not on it), its lowest feature in the image (nearest the camera: the near end) other than
     a settled one faster in projection than ``fast`` times the median speed of the body's settled features when
-    that median is ``fast_min`` or more (see REP_FAST_K), and the low part within ``near_m`` of it along the
-    road, which gives the velocity (its settled features) and the place and footprint across the road; the
-    settled features within ``spot_m`` give the spot speed (else it is vy). Returns (body, near end's slot,
-    body's span along the road, vx, vy, spot vy, x, x_lo, x_hi)."""
+    there are 4 or more and their median is ``fast_min`` or more (see REP_FAST_K), and the low part within
+    ``near_m`` of it along the road, which gives the velocity (its settled features) and the place and footprint
+    across the road; the settled features within ``spot_m`` give the spot speed (else it is vy). Returns (body,
+    near end's slot, body's span along the road, vx, vy, spot vy, x, x_lo, x_hi)."""
     v = np.abs(s[members, 3])
     body = members
     if _median_of(v) > moving:
