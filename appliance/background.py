@@ -7,10 +7,13 @@ import cv2
 import numpy as np
 from numba import njit
 
-UPDATE_EVERY = 4  # frames between background updates (moving vehicles never stay long enough to be learnt)
-FAST_UPDATES = 100  # the first updates move this many grey levels at once (a quick start) ...
+# It starts as the per-pixel median of WARMUP_SAMPLES frames, one in WARMUP_EVERY from the first (2 s at
+# 25 fps: passing vehicles cover a pixel far less than half of that, and the tests answer from then on) ...
+WARMUP_SAMPLES = 25
+WARMUP_EVERY = 2
+UPDATE_EVERY = 4  # ... then follows it: frames between updates (moving vehicles never stay long enough)
+FAST_UPDATES = 100  # the first updates move this many grey levels at once (what stood through the start) ...
 FAST_STEP = 4
-READY_UPDATES = 50  # ... and the test answers only after this many updates (8 s at 25 fps)
 NOISE = 10  # grey levels: a pixel this close to the background is the road as usual
 PAD_PX = 3
 MAX_BRIGHT_SHARE = 0.08  # a shadow brightens nothing (a little of its bright caster may be in the box)
@@ -39,12 +42,20 @@ class Background:
         self.bg: np.ndarray | None = None
         self.frames = 0
         self.updates = 0
+        self.samples: list[np.ndarray] = []  # the start's frames (WARMUP_SAMPLES), until their median is taken
 
     def update(self, img: np.ndarray) -> None:
-        self.frames += 1
-        if self.bg is None or self.bg.shape != img.shape:
-            self.bg, self.updates = img.copy(), 0
+        if self.bg is not None and self.bg.shape != img.shape:
+            self.bg, self.samples = None, []
+        if self.bg is None:
+            if self.frames % WARMUP_EVERY == 0:
+                self.samples.append(img.copy())
+            self.frames += 1
+            if len(self.samples) >= WARMUP_SAMPLES:
+                self.bg = np.median(np.stack(self.samples), axis=0).astype(np.uint8)
+                self.samples, self.frames, self.updates = [], 0, 0
             return
+        self.frames += 1
         if self.frames % UPDATE_EVERY:
             return
         step = FAST_STEP if self.updates < FAST_UPDATES else 1
@@ -54,7 +65,7 @@ class Background:
 
     @property
     def ready(self) -> bool:
-        return self.bg is not None and self.updates >= READY_UPDATES
+        return self.bg is not None
 
     def is_attached_shadow(self, img: np.ndarray, pts: np.ndarray, caster: np.ndarray) -> bool:
         """True when the points pts are on a shadow that reaches the caster's points in the image: the

@@ -4,7 +4,7 @@ texture, a vehicle (dark or bright) hides it; two parts are one body where no ro
 import numpy as np
 import pytest
 
-from appliance.background import READY_UPDATES, UPDATE_EVERY, Background
+from appliance.background import UPDATE_EVERY, WARMUP_EVERY, WARMUP_SAMPLES, Background
 
 
 def _road(seed: int = 0, std: float = 14.0) -> np.ndarray:
@@ -16,7 +16,7 @@ def _road(seed: int = 0, std: float = 14.0) -> np.ndarray:
 def _learnt(road: np.ndarray, noise_seed: int = 1) -> Background:
     bg = Background()
     rng = np.random.default_rng(noise_seed)
-    for _ in range((READY_UPDATES + 5) * UPDATE_EVERY):
+    for _ in range(WARMUP_SAMPLES * WARMUP_EVERY + 5 * UPDATE_EVERY):
         bg.update(np.clip(road + rng.normal(0, 2, road.shape), 0, 255).astype(np.uint8))
     return bg
 
@@ -33,7 +33,8 @@ def test_background_learns_the_empty_road_through_passing_vehicles():
     first = road.copy()
     first[30:70, 40:90] = 230  # a vehicle stands in the first frame
     bg.update(first)
-    for i in range(READY_UPDATES * UPDATE_EVERY):
+    for i in range((WARMUP_SAMPLES - 1) * WARMUP_EVERY):
+        assert not bg.ready  # nothing learnt yet: the image tests answer "no"
         img = road.copy()
         x = (i * 7) % 140
         img[80:100, x:x + 20] = 20  # vehicles pass, each pixel covered a short while

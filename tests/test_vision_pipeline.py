@@ -643,7 +643,7 @@ def test_a_shadow_cast_into_the_next_lane_is_not_a_second_vehicle(site, monkeypa
     vehicle's. The shadow test (darker road, road texture kept, reaching the vehicle) joins it to its caster."""
     import appliance.background as background
 
-    monkeypatch.setattr(background, "READY_UPDATES", 10)  # the scene starts on an empty road: learnt at once
+    monkeypatch.setattr(background, "WARMUP_SAMPLES", 5)  # the scene starts on an empty road: learnt at once
 
     def lanes_of_finished(shadow_test: bool) -> list[float]:
         pipe = VisionPipeline(site)
@@ -667,7 +667,7 @@ def test_a_shadow_joined_to_its_vehicle_is_no_part_of_its_place_across_the_road(
     vehicle's centre; with the shadow's corners in it, 0.18 m off."""
     import appliance.background as background
 
-    monkeypatch.setattr(background, "READY_UPDATES", 10)
+    monkeypatch.setattr(background, "WARMUP_SAMPLES", 5)
 
     class Unmarked(np.ndarray):
         def __setitem__(self, key, value) -> None:  # the shadow's features are never told apart
@@ -695,7 +695,7 @@ def test_a_shadow_cast_two_lanes_across_is_no_vehicle(monkeypatch):
     import appliance.background as background
     import appliance.grouping as grouping
 
-    monkeypatch.setattr(background, "READY_UPDATES", 1)  # the scene starts on an empty road: learnt at once
+    monkeypatch.setattr(background, "WARMUP_SAMPLES", 1)  # the scene starts on an empty road: learnt at once
     lanes = (("approaching", -5.25, -1.75), ("approaching", -1.75, 1.75), ("approaching", 1.75, 5.25))
     three = parse_site(site_dict(lanes=lanes))
 
