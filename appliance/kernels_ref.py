@@ -206,6 +206,37 @@ def assign_ids_ref(live, labels, fvid, next_vid, reported) -> tuple[dict[int, np
     return claimed, next_vid
 
 
+def unbridge_ref(new, live, owner, s, state) -> np.ndarray:
+    """Same contract as grouping.unbridge: per new feature, the vehicle (owner) of the LINKED owned feature
+    nearest to it (city-block distance, the first in live order of equals), or -1; one linked to two vehicles
+    or more is unlinked from every other vehicle's features (state changed in place, the new features in
+    turn)."""
+    def linked(i, j):
+        return state[min(i, j), max(i, j)] == LINKED
+
+    kept = np.full(len(new), -1)
+    for a, i in enumerate(new):
+        links = [j for j in live if j != i and owner[j] >= 0 and linked(i, j)]
+        if not links:
+            continue
+        near = links[int(np.argmin([abs(s[j, 1] - s[i, 1]) + abs(s[j, 0] - s[i, 0]) for j in links]))]
+        kept[a] = owner[near]
+        if len({int(owner[j]) for j in links}) > 1:
+            for j in links:
+                if owner[j] != kept[a]:
+                    state[min(i, j), max(i, j)] = APART
+    return kept
+
+
+def isolate_ref(new, kept, live, owner, state) -> None:
+    """Same contract as grouping.isolate: each new feature keeps only its links to its own vehicle's
+    features (none at all when kept gives it no vehicle)."""
+    for i, keep in zip(new, kept):
+        for j in live:
+            if j != i and not (keep >= 0 and owner[j] == keep) and state[min(i, j), max(i, j)] == LINKED:
+                state[min(i, j), max(i, j)] = APART
+
+
 def fit_places_ref(members, age, s, fit, fit_vid, vid, d, cy, k_max, frames, min_var, neighbour) -> float:
     """Same contract as grouping.fit_places, vectorised over the group's features."""
     m = members[age[members] >= 3]

@@ -10,7 +10,7 @@ from appliance import kernels_ref as ref
 from appliance.background import PAD_PX, shadow_at
 from appliance.corners import select_spaced
 from appliance.grouping import (alone_groups, assign_ids, components, fit_places, group_medians, group_summary,
-                                pair_update)
+                                isolate, pair_update, unbridge)
 from appliance.tracker import extract_template, track_step
 
 
@@ -195,6 +195,51 @@ def test_components_with_fragments_match_reference():
         labels = np.full(n, -1, np.int64)
         components(live, state, labels)
         assert {int(i): int(labels[i]) for i in live} == ref.components_ref(live, state), trial
+
+
+def test_unbridge_and_isolate_match_reference():
+    """Random pair graphs over owned (three vehicles) and unowned features, with new features among them."""
+    rng = np.random.default_rng(5)
+    changed = 0
+    for trial in range(40):
+        n = 40
+        live = np.sort(rng.choice(n, 32, replace=False)).astype(np.int64)
+        owner = np.where(rng.random(n) < 0.6, rng.integers(0, 3, n), -1).astype(np.int64)
+        s = np.zeros((n, 4))
+        s[:, :2] = rng.uniform(-3, 3, (n, 2)) + [0.0, 50.0]
+        state = np.triu(rng.choice([ref.UNSEEN, ref.LINKED, ref.APART, ref.FAR], (n, n), p=[0.3, 0.5, 0.1, 0.1]),
+                        1).astype(np.int8)
+        new = rng.choice(live, 6, replace=False).astype(np.int64)
+        st_a, st_b = state.copy(), state.copy()
+        kept = unbridge(new, live, owner, s, st_a)
+        np.testing.assert_array_equal(kept, ref.unbridge_ref(new, live, owner, s, st_b), err_msg=str(trial))
+        np.testing.assert_array_equal(st_a, st_b, err_msg=str(trial))
+        isolate(new, kept, live, owner, st_a)
+        ref.isolate_ref(new, kept, live, owner, st_b)
+        np.testing.assert_array_equal(st_a, st_b, err_msg=str(trial))
+        changed += bool((st_a != state).any())
+    assert changed >= 30  # most graphs had a new feature bridging two vehicles or a group of none
+
+
+def test_a_new_feature_between_two_queued_vehicles_keeps_only_the_nearer():
+    """Two reported vehicles 6 m apart in a queue; a corner found between them links to both. It stays
+    linked to the one it is nearer (its own features and an unowned neighbour keep their links)."""
+    n = 8
+    live = np.arange(n, dtype=np.int64)
+    owner = np.array([0, 0, 0, 1, 1, 1, -1, -1], np.int64)
+    s = np.zeros((n, 4))
+    s[:, 1] = [50.0, 51.0, 52.0, 58.0, 59.0, 60.0, 54.0, 53.5]  # slot 6: the new corner, 2 m behind vehicle 0
+    state = np.zeros((n, n), np.int8)
+    for i, j in [(0, 1), (1, 2), (3, 4), (4, 5), (2, 6), (3, 6), (6, 7)]:
+        state[i, j] = ref.LINKED
+    kept = unbridge(np.array([6], np.int64), live, owner, s, state)
+    assert list(kept) == [0]
+    assert state[2, 6] == ref.LINKED and state[3, 6] == ref.APART and state[6, 7] == ref.LINKED
+    labels = np.full(n, -1, np.int64)
+    components(live, state, labels)
+    assert labels[3] != labels[2] == labels[6]
+    isolate(np.array([6], np.int64), kept, live, owner, state)
+    assert state[2, 6] == ref.LINKED and state[6, 7] == ref.APART  # only its vehicle's links are left
 
 
 def test_assign_ids_matches_reference():
