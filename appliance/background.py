@@ -14,6 +14,10 @@ WARMUP_EVERY = 2
 UPDATE_EVERY = 4  # ... then follows it: frames between updates (moving vehicles never stay long enough)
 FAST_UPDATES = 100  # the first updates move this many grey levels at once (what stood through the start) ...
 FAST_STEP = 4
+# ... and the loops' watches (appliance.presence) start from it only after this many (8 s more at 25 fps): a
+# vehicle that stood on a loop through most of the start is learnt into the median, and the empty road it
+# leaves would read as one standing there for minutes (a slow truck over a loop in a dense stream will do)
+SETTLE_UPDATES = 50
 NOISE = 10  # grey levels: a pixel this close to the background is the road as usual
 PAD_PX = 3
 MAX_BRIGHT_SHARE = 0.08  # a shadow brightens nothing (a little of its bright caster may be in the box)
@@ -66,6 +70,10 @@ class Background:
     @property
     def ready(self) -> bool:
         return self.bg is not None
+
+    @property
+    def settled(self) -> bool:
+        return self.bg is not None and self.updates >= SETTLE_UPDATES
 
     def is_attached_shadow(self, img: np.ndarray, pts: np.ndarray, caster: np.ndarray) -> bool:
         """True when the points pts are on a shadow that reaches the caster's points in the image: the
