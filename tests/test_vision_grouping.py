@@ -591,6 +591,52 @@ def test_a_near_end_held_at_the_image_edge_does_not_slow_the_vehicle():
     assert moving.steady_vy(24.0) == pytest.approx(24.0)
 
 
+@pytest.mark.parametrize("edge_rule", [True, False])
+def test_a_near_end_leaving_the_image_at_its_bottom_goes_on_at_the_vehicles_speed(monkeypatch, edge_rule):
+    """A camera drifted 80 px: the image now ends above the lane's exit zone. An approaching car's features
+    are dropped as they reach the image's bottom (the tracker's search window leaves the image), its front
+    corners first; the rest lie 2.5 m and more behind. Its near end goes on at the car's speed from then on,
+    and the car reaches its exit zone; held where the front corners were lost (the rule off), it stands for
+    the time the next features take to get there, and the car is lost short of the exit."""
+    import appliance.grouping as grouping
+
+    if not edge_rule:
+        monkeypatch.setattr(grouping, "EDGE_ROWS_K", 0.0)
+    site = parse_site(site_dict())
+    zones = SiteZones(site)
+    g = Grouper(site.tracking, zones)
+    n = site.tracking.max_features
+    s, px = np.zeros((n, 4)), np.zeros((n, 2))
+    lane, alive, age = np.zeros(n, np.int32), np.zeros(n, np.bool_), np.zeros(n, np.int32)
+    body = np.array([[0.9, 0.0], [2.4, 0.05], [1.2, 2.5], [2.2, 2.8], [1.5, 3.4], [2.0, 4.1]])
+    g.reset_slots(np.arange(len(body)))
+    last_row = zones.height - 8  # the tracker drops a feature whose search window leaves the image
+    lost_at, states = None, []
+    for f in range(80):
+        t = f * DT
+        front = 30.0 - 15.0 * t
+        for i, (x, dy) in enumerate(body):
+            row = zones.H.road_to_img(np.array([[x, front + dy]]))[0] + [0.0, 80.0]  # the drift
+            alive[i] = alive[i] or f == 0
+            if alive[i] and row[1] >= last_row:
+                alive[i] = False
+                lost_at = t if lost_at is None else lost_at
+            s[i], px[i] = (x, front + dy, 0.0, -15.0), row
+            lane[i], age[i] = 2, f
+        out, retire = g.step(t, s, px, lane, alive, age)
+        alive[retire] = False
+        states += out
+        if any(st.finished for st in out):
+            break
+    after = [st for st in states if lost_at is not None and st.t >= lost_at - 1e-9]
+    assert len(after) >= 3 and after[-1].finished
+    speed = (after[0].y_front - after[-1].y_front) / (after[-1].t - after[0].t)
+    if edge_rule:
+        assert speed == pytest.approx(15.0, rel=0.1) and after[-1].exited
+    else:
+        assert speed < 0.6 * 15.0 and not after[-1].exited
+
+
 def test_a_vehicle_seen_only_by_its_lights_is_reported_at_a_typical_length():
     """At night an approaching vehicle is its headlights: nothing of its body behind them is seen, so its
     length is not measured as the lights' few centimetres but reported as a typical car's (NOMINAL_LENGTH_M:
