@@ -28,7 +28,7 @@ ARRIVE_MPS = 1.0  # ... at least this fast (a patch that changed with nothing co
 # moving over the loop: a vehicle passed and left the road as learnt (as a vehicle moves off, its own patch
 # still matches for a moment, hence the difference first). The background a loop starts from is trusted:
 # a queue that stands on a loop as the service starts is called, and a vehicle learnt into it (one that
-# stood there through most of the background's first 2 s) gives a false call when it leaves, for MAX_STAND_S at most.
+# stood there until the background settled, 10 s in) gives a false call when it leaves, for MAX_STAND_S at most.
 TRUST_S = 2.0
 # The empty road under a loop is learnt (an approximate median) only while no feature is near: the
 # background's median learns a busy lane's traffic, and a standing queue
