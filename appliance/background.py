@@ -18,6 +18,9 @@ FAST_STEP = 4
 # vehicle that stood on a loop through most of the start is learnt into the median, and the empty road it
 # leaves would read as one standing there for minutes (a slow truck over a loop in a dense stream will do)
 SETTLE_UPDATES = 50
+# The frames are learnt as they come, the camera shaking and drifting: the background lines up with the camera's
+# offset (the stabiliser's) followed as its grey levels are, by at most OFFSET_STEP_PX an update (1.5 px/s)
+OFFSET_STEP_PX = 0.25
 NOISE = 10  # grey levels: a pixel this close to the background is the road as usual
 PAD_PX = 3
 MAX_BRIGHT_SHARE = 0.08  # a shadow brightens nothing (a little of its bright caster may be in the box)
@@ -47,21 +50,27 @@ class Background:
         self.frames = 0
         self.updates = 0
         self.samples: list[np.ndarray] = []  # the start's frames (WARMUP_SAMPLES), until their median is taken
+        self.offsets: list[tuple[float, float]] = []  # ... and the camera's offsets then
+        self.offset = np.zeros(2)  # the camera's offset the background lines up with (see OFFSET_STEP_PX)
 
-    def update(self, img: np.ndarray) -> None:
+    def update(self, img: np.ndarray, offset: tuple[float, float] = (0.0, 0.0)) -> None:
+        """Learn frame img, taken at the camera's offset (the stabiliser's)."""
         if self.bg is not None and self.bg.shape != img.shape:
-            self.bg, self.samples = None, []
+            self.bg, self.samples, self.offsets = None, [], []
         if self.bg is None:
             if self.frames % WARMUP_EVERY == 0:
                 self.samples.append(img.copy())
+                self.offsets.append(offset)
             self.frames += 1
             if len(self.samples) >= WARMUP_SAMPLES:
                 self.bg = np.median(np.stack(self.samples), axis=0).astype(np.uint8)
-                self.samples, self.frames, self.updates = [], 0, 0
+                self.offset = np.median(np.array(self.offsets, np.float64), axis=0)
+                self.samples, self.offsets, self.frames, self.updates = [], [], 0, 0
             return
         self.frames += 1
         if self.frames % UPDATE_EVERY:
             return
+        self.offset += np.clip(np.asarray(offset, np.float64) - self.offset, -OFFSET_STEP_PX, OFFSET_STEP_PX)
         step = FAST_STEP if self.updates < FAST_UPDATES else 1
         cv2.add(self.bg, step, dst=self.bg, mask=cv2.compare(img, self.bg, cv2.CMP_GT))
         cv2.subtract(self.bg, step, dst=self.bg, mask=cv2.compare(img, self.bg, cv2.CMP_LT))

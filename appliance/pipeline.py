@@ -240,7 +240,7 @@ class VisionPipeline:
         if self.prev is not None and dt > 0:
             self._detect(img, dt, frame.t)
         c3 = time.perf_counter()
-        self.background.update(img)
+        self.background.update(img, self.offset)
         states, retire = self.grouper.step(frame.t, tr.s, tr.px, tr.lane, tr.alive, tr.age,
                                            lambda pts, caster: self._is_shadow(img, pts, caster),
                                            partial(self.background.is_joined, img))
@@ -251,7 +251,8 @@ class VisionPipeline:
         c4 = time.perf_counter()
         bg = self.background
         if self.presence is not None:
-            self.presence.step(frame.t, img, bg.bg if bg.settled else None, self.offset, tr.s[tr.live()])
+            self.presence.step(frame.t, img, bg.bg if bg.settled else None, self.offset, tr.s[tr.live()],
+                               (float(bg.offset[0]), float(bg.offset[1])))
         c5 = time.perf_counter()
         tm["stabilise"] += c1 - c0
         tm["track"] += c2 - c1

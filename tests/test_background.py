@@ -61,6 +61,21 @@ def test_a_vehicle_standing_through_the_start_is_unlearnt_before_the_background_
     assert bg.updates == SETTLE_UPDATES
 
 
+def test_the_background_lines_up_with_the_camera_it_learnt_from():
+    """Frames taken shaking about (4, -2) px: the start's median lines up there; the camera then drifts 20 px
+    in 20 s (25 fps), and the background follows it within a pixel."""
+    road = _road()
+    bg = Background()
+    k = 0
+    while not bg.ready:
+        bg.update(road, (4.0 + 3.0 * np.sin(k), -2.0 + 3.0 * np.cos(1.3 * k)))
+        k += 1
+    np.testing.assert_allclose(bg.offset, (4.0, -2.0), atol=1.0)
+    for i in range(500):
+        bg.update(road, (4.0 + 20.0 * i / 499.0, -2.0))
+    np.testing.assert_allclose(bg.offset, (24.0, -2.0), atol=1.0)
+
+
 def test_shadow_is_told_from_dark_and_bright_vehicles():
     road, bg, pts = _box_scene()
     shadow = road.copy()
