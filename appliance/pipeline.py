@@ -149,7 +149,7 @@ class VisionPipeline:
     # ------------------------------------------------------------------------------------------
     def warmup(self) -> None:
         """Compile (or load from cache) every numba kernel on dummy data, leaving no state behind."""
-        from appliance.background import shadow_at
+        from appliance.background import shadow_at, temporal_median
         from appliance.corners import select_spaced
         from appliance.grouping import (alone_groups, assign_ids, components, fit_places, group_medians,
                                         group_summary, isolate, pair_update, unbridge)
@@ -186,6 +186,7 @@ class VisionPipeline:
         group_medians(live, np.array([0, n], np.int64), s, np.zeros(n, np.int32))
         alone_groups(np.ones(1, np.int64), np.zeros(1), np.zeros(1), np.ones(1), np.zeros((1, 8)), 0.0, 0.0, 1.5)
         shadow_at(img, img, np.array([[8.0, 8.0], [16.0, 16.0]]), True)
+        temporal_median(np.stack([img, img, img]), np.empty_like(img))
 
     # ------------------------------------------------------------------------------------------
     def _check_frame(self, frame: Frame) -> np.ndarray:

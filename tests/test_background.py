@@ -4,7 +4,8 @@ texture, a vehicle (dark or bright) hides it; two parts are one body where no ro
 import numpy as np
 import pytest
 
-from appliance.background import FAST_STEP, SETTLE_UPDATES, UPDATE_EVERY, WARMUP_EVERY, WARMUP_SAMPLES, Background
+from appliance.background import (FAST_STEP, SETTLE_UPDATES, UPDATE_EVERY, WARMUP_EVERY, WARMUP_SAMPLES, Background,
+                                  temporal_median)
 
 
 def _road(seed: int = 0, std: float = 14.0) -> np.ndarray:
@@ -74,6 +75,15 @@ def test_the_background_lines_up_with_the_camera_it_learnt_from():
     for i in range(500):
         bg.update(road, (4.0 + 20.0 * i / 499.0, -2.0))
     np.testing.assert_allclose(bg.offset, (24.0, -2.0), atol=1.0)
+
+
+@pytest.mark.parametrize("n", [25, 8])
+def test_temporal_median_matches_numpy(n):
+    stack = np.random.default_rng(n).integers(0, 256, (n, 30, 40)).astype(np.uint8)
+    out = np.empty((30, 40), np.uint8)
+    temporal_median(stack, out)
+    expect = np.median(stack, axis=0) if n % 2 else np.sort(stack, axis=0)[n // 2]
+    np.testing.assert_array_equal(out, expect)
 
 
 def test_shadow_is_told_from_dark_and_bright_vehicles():
