@@ -1,5 +1,6 @@
-"""The empty road as the camera sees it (a running approximate median of the frames), and the test
-whether an image region is only a shadow on it: darker by one factor, the road's texture still there."""
+"""The empty road as the camera sees it (the median of the first frames, then a running approximate median),
+and the test whether an image region is only a shadow on it: darker by one factor, the road's texture still
+there."""
 
 from __future__ import annotations
 

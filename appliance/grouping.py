@@ -228,6 +228,11 @@ LONE_SHADOW_SHARE = 0.6  # ... of which this share must find a shadow
 # times 1 - LATE_HOST_K_SPREAD, 1 or 1 + LATE_HOST_K_SPREAD). A FAR pair stays FAR until it links or a feature
 # is replaced: two lone small groups that close in on each other (motorcycles in a queue) may link, and only
 # segmentation parts them again.
+LATE_BESIDE_M = 15.0
+LATE_BESIDE_X_M = 6.0
+LATE_BESIDE_K = (0.7, 1.5)
+LATE_HOST_X_M = 2.5
+LATE_HOST_K_SPREAD = 0.15
 # An approaching vehicle's near end whose feature lay within EDGE_ROWS_K times the tracker's reach (its search
 # radius and half a template) of the image's bottom and is gone has left the view there (the tracker drops a
 # feature whose search window leaves the image): the near end goes on at the vehicle's speed from then on, as
@@ -235,11 +240,6 @@ LONE_SHADOW_SHARE = 0.6  # ... of which this share must find a shadow
 # stand at the image's edge for a few frames, their time counted without distance: where a camera has
 # drifted so far that its image ends inside the Edie region, speeds read 5-7 % low.)
 EDGE_ROWS_K = 3.0
-LATE_BESIDE_M = 15.0
-LATE_BESIDE_X_M = 6.0
-LATE_BESIDE_K = (0.7, 1.5)
-LATE_HOST_X_M = 2.5
-LATE_HOST_K_SPREAD = 0.15
 
 
 @njit(cache=True)
@@ -711,7 +711,7 @@ class VehicleTrack:
     adopted: float = 0.0  # the furthest place behind the near end of a part it adopted (see ADOPT_K_MIN)
     near_slot: int = -1  # the near end's feature in the last frame ...
     near_row: float = 0.0  # ... its image row then
-    leaving: bool = False  # its near end has left the image at its bottom (see EDGE_ROWS)
+    leaving: bool = False  # its near end has left the image at its bottom (see EDGE_ROWS_K)
 
     def elevated_x(self) -> tuple[float, float]:
         """Across the road, where an elevated part of it may lie (its height undone): its footprint, widened to
@@ -922,7 +922,7 @@ class Grouper:
                 prev = tr.trajectory[-1][2]
                 if sign < 0 and rep_y > prev and (tr.leaving or (
                         tr.near_slot not in members and tr.near_row >= self.zones.height - self.edge_rows)):
-                    tr.leaving = True  # see EDGE_ROWS
+                    tr.leaving = True  # see EDGE_ROWS_K
                     rep_y = prev + vy * (t - tr.trajectory[-1][0])
                 rep_y = min(prev, rep_y) if sign < 0 else max(prev, rep_y)
             else:

@@ -102,8 +102,8 @@ class LoopWatch:
     def step(self, t: float, img: np.ndarray, bg: np.ndarray | None, bg_mean: float, light: float,
              offset: tuple[float, float], moving_here: bool, passing: bool, clear: bool,
              bg_offset: tuple[float, float] = (0.0, 0.0)) -> None:
-        """bg: the background (None until it is ready), bg_mean its mean grey, bg_offset where the camera was
-        for it (it is learnt from the frames as they come); light: the light on the road now, in the
+        """bg: the background (None until it has settled), bg_mean its mean grey, bg_offset the camera's offset
+        it lines up with (it is learnt from the frames as they come); light: the light on the road now, in the
         background's grey levels (LoopPresence.step); moving_here: features move near the loop; passing:
         features move over it; clear: no feature is near it."""
         if moving_here:
@@ -197,7 +197,7 @@ class LoopPresence:
 
     def step(self, t: float, img: np.ndarray, bg: np.ndarray | None, offset: tuple[float, float],
              feat_s: np.ndarray, bg_offset: tuple[float, float] = (0.0, 0.0)) -> None:
-        """bg: the background (None until it is ready), bg_offset the camera's offset it lines up with (a
+        """bg: the background (None until it has settled), bg_offset the camera's offset it lines up with (a
         shaking camera's frame now may be pixels away from it); feat_s: the live features' road states (x, y,
         vx, vy).
         Below DAYLIGHT_GREY the image is not asked, and what was learnt is forgotten."""

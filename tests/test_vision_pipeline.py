@@ -648,7 +648,8 @@ def test_a_shadow_cast_into_the_next_lane_is_not_a_second_vehicle(site, monkeypa
     def lanes_of_finished(shadow_test: bool) -> list[float]:
         pipe = VisionPipeline(site)
         if not shadow_test:
-            pipe.background.update = lambda img, offset=None: None  # never learns the road: no shadow is ever recognised
+            # never learns the road: no shadow is ever recognised
+            pipe.background.update = lambda img, offset=None: None
         scene = Scene(7)
         scene.add_vehicle(-1.75, 80.0, 4.5, -18.0, t0=2.0, shadow_m=3.2)
         finished, _ = run(pipe, scene, 6.5)
