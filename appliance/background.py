@@ -53,9 +53,12 @@ class Background:
         self.samples: list[np.ndarray] = []  # the start's frames (WARMUP_SAMPLES), until their median is taken
         self.offsets: list[tuple[float, float]] = []  # ... and the camera's offsets then
         self.offset = np.zeros(2)  # the camera's offset the background lines up with (see OFFSET_STEP_PX)
+        self.now = (0.0, 0.0)  # the camera's offset in the frame last learnt ...
+        self._view: np.ndarray | None = None  # ... and the background moved to line up with it (see aligned)
 
     def update(self, img: np.ndarray, offset: tuple[float, float] = (0.0, 0.0)) -> None:
         """Learn frame img, taken at the camera's offset (the stabiliser's)."""
+        self.now, self._view = offset, None
         if self.bg is not None and self.bg.shape != img.shape:
             self.bg, self.samples, self.offsets = None, [], []
         if self.bg is None:
@@ -86,6 +89,20 @@ class Background:
     def settled(self) -> bool:
         return self.bg is not None and self.updates >= SETTLE_UPDATES
 
+    @property
+    def aligned(self) -> np.ndarray:
+        """The background moved by whole pixels to line up with the frame last learnt (a shaking camera's frame
+        lies pixels away from it): what the image tests compare that frame with."""
+        if self._view is None:
+            dx, dy = (int(round(self.now[k] - self.offset[k])) for k in (0, 1))
+            if dx == 0 and dy == 0:
+                self._view = self.bg
+            else:
+                h, w = self.bg.shape
+                self._view = cv2.warpAffine(self.bg, np.float32([[1, 0, dx], [0, 1, dy]]), (w, h),
+                                            borderMode=cv2.BORDER_REPLICATE)
+        return self._view
+
     def is_attached_shadow(self, img: np.ndarray, pts: np.ndarray, caster: np.ndarray) -> bool:
         """True when the points pts are on a shadow that reaches the caster's points in the image: the
         road between the two, across the rows they share, is shadowed too (two vehicles side by side
@@ -108,7 +125,7 @@ class Background:
         if c1 <= c0 or r1 <= r0:
             return True
         a = img[r0:r1, c0:c1].astype(np.int16)
-        b = self.bg[r0:r1, c0:c1].astype(np.int16)
+        b = self.aligned[r0:r1, c0:c1].astype(np.int16)
         n = a.size
         return (np.count_nonzero(a > b + NOISE) <= MAX_BRIGHT_SHARE * n
                 and np.count_nonzero(a < b - NOISE) >= MIN_ATTACHED_DARK * n)
@@ -126,7 +143,7 @@ class Background:
         h, w = img.shape
         xs = np.clip(np.round(np.linspace(a[0], b[0], n)).astype(np.int64), 0, w - 1)
         ys = np.clip(np.round(np.linspace(a[1], b[1], n)).astype(np.int64), 0, h - 1)
-        diff = np.abs(img[ys, xs].astype(np.int16) - self.bg[ys, xs].astype(np.int16))
+        diff = np.abs(img[ys, xs].astype(np.int16) - self.aligned[ys, xs].astype(np.int16))
         return np.count_nonzero(diff > NOISE) >= (MIN_JOINED_SHARE if share is None else share) * n
 
     def is_shadow(self, img: np.ndarray, pts: np.ndarray, plain_ok: bool = True) -> bool:
@@ -134,7 +151,7 @@ class Background:
         Where the road is too plain for the texture test, an evenly dimmed box counts if plain_ok."""
         if not self.ready or len(pts) == 0:
             return False
-        return bool(shadow_at(img, self.bg, np.asarray(pts, np.float64), plain_ok))
+        return bool(shadow_at(img, self.aligned, np.asarray(pts, np.float64), plain_ok))
 
 
 @njit(cache=True)

@@ -86,6 +86,19 @@ def test_temporal_median_matches_numpy(n):
     np.testing.assert_array_equal(out, expect)
 
 
+@pytest.mark.parametrize("offset_known", [True, False])
+def test_the_image_tests_compare_a_shaken_frame_with_the_road_where_it_lies(offset_known):
+    """The road learnt with the camera at rest; a frame shaken 5 px right and 3 px down shows a shadow. With the
+    frame's offset known, the shadow test compares it with the road under it and finds the shadow; compared
+    pixel by pixel with the road 5 px away, it does not."""
+    road, bg, pts = _box_scene()
+    shadow = road.copy()
+    shadow[40:71, 50:101] = (road[40:71, 50:101] * 0.5).astype(np.uint8)
+    frame = np.roll(shadow, (3, 5), axis=(0, 1))
+    bg.update(frame, (5.0, 3.0) if offset_known else (0.0, 0.0))
+    assert bg.is_shadow(frame, pts + [5.0, 3.0]) == offset_known
+
+
 def test_shadow_is_told_from_dark_and_bright_vehicles():
     road, bg, pts = _box_scene()
     shadow = road.copy()
