@@ -252,8 +252,7 @@ class VisionPipeline:
         c4 = time.perf_counter()
         bg = self.background
         if self.presence is not None:
-            self.presence.step(frame.t, img, bg.bg if bg.settled else None, self.offset, tr.s[tr.live()],
-                               (float(bg.offset[0]), float(bg.offset[1])))
+            self.presence.step(frame.t, img, bg.aligned if bg.settled else None, self.offset, tr.s[tr.live()])
         c5 = time.perf_counter()
         tm["stabilise"] += c1 - c0
         tm["track"] += c2 - c1

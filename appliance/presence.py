@@ -100,12 +100,10 @@ class LoopWatch:
         return np.count_nonzero(off > DIFF_GREY) / self.n
 
     def step(self, t: float, img: np.ndarray, bg: np.ndarray | None, bg_mean: float, light: float,
-             offset: tuple[float, float], moving_here: bool, passing: bool, clear: bool,
-             bg_offset: tuple[float, float] = (0.0, 0.0)) -> None:
-        """bg: the background (None until it has settled), bg_mean its mean grey, bg_offset the camera's offset
-        it lines up with (it is learnt from the frames as they come); light: the light on the road now, in the
-        background's grey levels (LoopPresence.step); moving_here: features move near the loop; passing:
-        features move over it; clear: no feature is near it."""
+             offset: tuple[float, float], moving_here: bool, passing: bool, clear: bool) -> None:
+        """bg: the background lined up with img (None until it has settled), bg_mean its mean grey; light: the
+        light on the road now, in the background's grey levels (LoopPresence.step); moving_here: features move
+        near the loop; passing: features move over it; clear: no feature is near it."""
         if moving_here:
             self.last_motion = t
         p = self._crop(img, offset)
@@ -113,7 +111,7 @@ class LoopWatch:
             self.forget()
             return
         if self.ref is None or self.ref.shape != p.shape:
-            road = None if bg is None else self._crop(bg, bg_offset)
+            road = None if bg is None else self._crop(bg, offset)
             if road is None:
                 return
             # the background's median to start with, under the background's own light
@@ -196,10 +194,9 @@ class LoopPresence:
                 self.sights[w.id] = old.sights[w.id]
 
     def step(self, t: float, img: np.ndarray, bg: np.ndarray | None, offset: tuple[float, float],
-             feat_s: np.ndarray, bg_offset: tuple[float, float] = (0.0, 0.0)) -> None:
-        """bg: the background (None until it has settled), bg_offset the camera's offset it lines up with (a
-        shaking camera's frame now may be pixels away from it); feat_s: the live features' road states (x, y,
-        vx, vy).
+             feat_s: np.ndarray) -> None:
+        """bg: the background lined up with img (None until it has settled: appliance.background); feat_s: the
+        live features' road states (x, y, vx, vy).
         Below DAYLIGHT_GREY the image is not asked, and what was learnt is forgotten."""
         if not self.watches:
             return
@@ -222,6 +219,5 @@ class LoopPresence:
             moving = moving_in_lane & (y >= lo - ARRIVE_M) & (y <= hi + ARRIVE_M)
             passing = moving_in_lane & (y >= lo) & (y <= hi)
             near = (x >= w.x_range[0] - CLEAR_SIDE_M) & (x <= w.x_range[1] + CLEAR_SIDE_M) & (y >= c0) & (y <= c1)
-            w.step(t, img, bg, bg_mean, light, offset, bool(moving.any()), bool(passing.any()), not near.any(),
-                   bg_offset)
+            w.step(t, img, bg, bg_mean, light, offset, bool(moving.any()), bool(passing.any()), not near.any())
             self.sights[w.id] = LoopSight(w.occupied_since, w.standing)
