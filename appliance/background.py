@@ -50,8 +50,9 @@ class Background:
         self.bg: np.ndarray | None = None
         self.frames = 0
         self.updates = 0
-        self.samples: list[np.ndarray] = []  # the start's frames (WARMUP_SAMPLES), until their median is taken
-        self.offsets: list[tuple[float, float]] = []  # ... and the camera's offsets then
+        self.samples: np.ndarray | None = None  # the start's frames (WARMUP_SAMPLES), until their median is taken ...
+        self.offsets = np.zeros((0, 2))  # ... the camera's offsets then ...
+        self.n_samples = 0  # ... and how many are in
         self.offset = np.zeros(2)  # the camera's offset the background lines up with (see OFFSET_STEP_PX)
         self.now = (0.0, 0.0)  # the camera's offset in the frame last learnt ...
         self._view: np.ndarray | None = None  # ... and the background moved to line up with it (see aligned)
@@ -60,17 +61,22 @@ class Background:
         """Learn frame img, taken at the camera's offset (the stabiliser's)."""
         self.now, self._view = offset, None
         if self.bg is not None and self.bg.shape != img.shape:
-            self.bg, self.samples, self.offsets = None, [], []
+            self.bg = None
         if self.bg is None:
+            if self.samples is None or self.samples.shape[1:] != img.shape:
+                self.samples = np.empty((WARMUP_SAMPLES, *img.shape), np.uint8)
+                self.offsets = np.empty((WARMUP_SAMPLES, 2))
+                self.n_samples = self.frames = 0
             if self.frames % WARMUP_EVERY == 0:
-                self.samples.append(img.copy())
-                self.offsets.append(offset)
+                self.samples[self.n_samples] = img
+                self.offsets[self.n_samples] = offset
+                self.n_samples += 1
             self.frames += 1
-            if len(self.samples) >= WARMUP_SAMPLES:
+            if self.n_samples == len(self.samples):
                 self.bg = np.empty_like(img)
-                temporal_median(np.stack(self.samples), self.bg)
-                self.offset = np.median(np.array(self.offsets, np.float64), axis=0)
-                self.samples, self.offsets, self.frames, self.updates = [], [], 0, 0
+                temporal_median(self.samples, self.bg)
+                self.offset = np.median(self.offsets, axis=0)
+                self.samples, self.frames, self.updates = None, 0, 0
             return
         self.frames += 1
         if self.frames % UPDATE_EVERY:
