@@ -13,6 +13,7 @@ from __future__ import annotations
 import bisect
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -674,6 +675,17 @@ def _extent(o: VehicleState, length: float | None = None) -> tuple[float, float]
     return near - 1.0, near + max(span, MIN_LENGTH_M) + 1.0
 
 
+class Lost(NamedTuple):
+    """A reported vehicle whose features were all lost inside its detection zone (it may be found again)."""
+
+    t: float
+    lane_index: int
+    near: float  # its near end then
+    speed: float  # m/s
+    x: float = float("nan")  # across the road
+    front: float = float("nan")  # its front along the road
+
+
 @dataclass
 class VehicleTrack:
     """Bookkeeping of one vehicle hypothesis across frames."""
@@ -766,8 +778,7 @@ class Grouper:
         self.lights_only = False  # a night scene: vehicles seen by their lights alone (set by the pipeline)
         self.merged_now: set[int] = set()  # groups joined to another vehicle in the last step (for the pipeline's hold)
         self.recent: list[tuple[VehicleState, float, float]] = []  # finished vehicles, for their leftovers
-        # (t, lane index, near end, speed) of reported vehicles lost
-        self.lost: list[tuple[float, int, float, float]] = []
+        self.lost: list[Lost] = []  # reported vehicles lost
         self.foot = zones.camera  # (X, Y, height) of the camera, or None
         self.edge_rows = EDGE_ROWS_K * (params.search_radius_px + params.template_px // 2)
         h = self.foot[2] if self.foot is not None else 0.0
@@ -1009,7 +1020,7 @@ class Grouper:
                 # the earlier near-end points, so that lines crossed before this report still count
                 ahead = 0.0 if sign < 0 else tr.ground[0]
                 st.trajectory = [(pt, px_, py + ahead) for pt, px_, py in tr.trajectory[:-1]] or None
-                st.entered = self._entered(tr, st.t)
+                st.entered = self._entered(tr, st, ahead)
             elif self.matching_host(tr.id):  # no match this frame: no evidence either way
                 st = replace(st, part_of=tr.votes[0])
             out.append(st)
@@ -1425,7 +1436,9 @@ class Grouper:
         elif self._qualifies_on_loss(tr):
             out.append(self._finish(tr, exited=False))
         elif tr.reported and tr.trajectory:
-            self.lost.append((t, tr.lane_index, tr.trajectory[-1][2], abs(tr.last.vy) if tr.last else 0.0))
+            last = tr.last
+            self.lost.append(Lost(t, tr.lane_index, tr.trajectory[-1][2], abs(last.vy) if last else 0.0,
+                                  last.x if last else float("nan"), last.y_front if last else float("nan")))
 
     def _absorb(self, members: np.ndarray, host: int, host_members: np.ndarray, shade: bool | None = None) -> None:
         """A part's features become vehicle host's for good (linked to its features; with shade, marked as a
@@ -1469,19 +1482,27 @@ class Grouper:
         tr.shadow_tests = (t0, n, hits)
         return t - t0 >= LONE_SHADOW_S and n >= LONE_SHADOW_TESTS and hits >= LONE_SHADOW_SHARE * n
 
-    def _entered(self, tr: VehicleTrack, t: float) -> bool:
+    def _entered(self, tr: VehicleTrack, st: VehicleState, ahead: float) -> bool:
         """Whether a newly reported vehicle entered the view: first seen in its lane's detection zone, and
         not where a reported vehicle of its lane lost in the last LOST_KEEP_S could be by then (found again,
-        it must not count again)."""
+        it must not count again). Found again past its count line where it was lost short of it, it starts
+        from where it was lost (st.trajectory, whose points are its front ``ahead`` of its near end), so that
+        it counts there once: a vehicle whose features were all lost just before the line (hidden by one in
+        the next lane, or crawling in a queue) was never counted."""
         if tr.lane_index <= 0:
             return False
         lz = self.zones.by_index(tr.lane_index)
         y0 = tr.trajectory[0][2]
-        self.lost = [lo for lo in self.lost if t - lo[0] <= LOST_KEEP_S]
+        self.lost = [lo for lo in self.lost if st.t - lo.t <= LOST_KEEP_S]
         t0 = tr.trajectory[0][0]
-        near_lost = any(li == tr.lane_index and _reachable(lz.sign * (y0 - y), v, max(t0 - tl, 0.0))
-                        for tl, li, y, v in self.lost)
-        return lz.detection_y[0] <= y0 <= lz.detection_y[1] and not near_lost
+        found = [lo for lo in self.lost if lo.lane_index == tr.lane_index
+                 and _reachable(lz.sign * (y0 - lo.near), lo.speed, max(t0 - lo.t, 0.0))]
+        short = [lo for lo in found if lo.t < t0 and lz.sign * (lo.front - lz.count_y) < 0]
+        if short and lz.sign * (y0 + ahead - lz.count_y) >= 0:
+            lo = max(short, key=lambda lo: lo.t)
+            self.lost.remove(lo)
+            st.trajectory = [(lo.t, lo.x, lo.front)] + (st.trajectory or [])
+        return lz.detection_y[0] <= y0 <= lz.detection_y[1] and not found
 
     def _link(self, a: np.ndarray, b: np.ndarray) -> None:
         """Join features a to the vehicle of features b for good."""

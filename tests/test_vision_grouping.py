@@ -520,7 +520,7 @@ def test_a_vehicle_found_again_where_one_was_lost_has_not_entered_the_view():
     """The `entered` flag of a first report (the measures count a vehicle entering already over its count
     line): first seen in its lane's detection zone, but not within REFOUND_M of where a reported vehicle of
     its lane lost in the last LOST_KEEP_S could be by then (found again, it was counted before)."""
-    from appliance.grouping import LOST_KEEP_S, REFOUND_M
+    from appliance.grouping import LOST_KEEP_S, REFOUND_M, Lost
 
     site = parse_site(site_dict())
     zones = SiteZones(site)
@@ -528,23 +528,52 @@ def test_a_vehicle_found_again_where_one_was_lost_has_not_entered_the_view():
     lz = zones.by_index(1)
     y_in = 0.5 * (lz.detection_y[0] + lz.detection_y[1])
     tr = VehicleTrack(id=5, first_t=10.0, lane_index=1, trajectory=[(10.0, 0.0, y_in)])
-    assert g._entered(tr, 10.0)
-    g.lost.append((9.0, 1, y_in + 0.5 * REFOUND_M, 0.0))  # lost standing
-    assert not g._entered(tr, 10.0)
-    assert g._entered(tr, 9.0 + LOST_KEEP_S + 1.0)  # long gone
-    g.lost.append((9.0, 2, y_in, 0.0))  # another lane's
-    assert g._entered(tr, 10.0)
+
+    def entered(track: VehicleTrack, t: float) -> bool:
+        return g._entered(track, VehicleState(track.id, t, 0.0, y_in, y_in + 4.5, 0.0, 0.0, 4.5, 6), 0.0)
+
+    assert entered(tr, 10.0)
+    g.lost.append(Lost(9.0, 1, y_in + 0.5 * REFOUND_M, 0.0))  # lost standing
+    assert not entered(tr, 10.0)
+    assert entered(tr, 9.0 + LOST_KEEP_S + 1.0)  # long gone
+    g.lost.append(Lost(9.0, 2, y_in, 0.0))  # another lane's
+    assert entered(tr, 10.0)
     # lost at 25 m/s (approaching: y falls): 1 s later it is 12-25 m on, not where it was lost, and a new group
     # there 20 m on is it found again; one lost 0.04 s before a new group is first seen 1 m on is handed over
     sign = lz.sign
-    g.lost = [(9.0, 1, y_in, 25.0)]
-    assert g._entered(tr, 10.0)
-    g.lost = [(9.0, 1, y_in - sign * 20.0, 25.0)]
-    assert not g._entered(tr, 10.0)
-    g.lost = [(9.96, 1, y_in - sign * 1.0, 25.0)]
-    assert not g._entered(tr, 10.0)
+    g.lost = [Lost(9.0, 1, y_in, 25.0)]
+    assert entered(tr, 10.0)
+    g.lost = [Lost(9.0, 1, y_in - sign * 20.0, 25.0)]
+    assert not entered(tr, 10.0)
+    g.lost = [Lost(9.96, 1, y_in - sign * 1.0, 25.0)]
+    assert not entered(tr, 10.0)
     outside = VehicleTrack(id=6, first_t=10.0, lane_index=1, trajectory=[(10.0, 0.0, lz.exit_y[0])])
-    assert not g._entered(outside, 10.0)
+    assert not entered(outside, 10.0)
+
+
+@pytest.mark.parametrize("lost_before_line", [True, False])
+def test_a_vehicle_lost_short_of_its_count_line_and_found_again_past_it_counts_there_once(lost_before_line):
+    """A car crawling in a queue at 3 m/s loses all its features 1 m short of its count line (hidden by a van
+    in the next lane) and is found again 1.5 s later, 3.5 m on, past the line: it starts from where it was
+    lost, so that it crosses the line and counts once. Lost past the line (counted then) it does not."""
+    from appliance.grouping import Lost
+
+    site = parse_site(site_dict())
+    zones = SiteZones(site)
+    g = Grouper(site.tracking, zones)
+    lz = zones.by_index(1)
+    sign, line = lz.sign, lz.count_y
+    y_lost = line - sign * (1.0 if lost_before_line else -1.0)
+    g.lost.append(Lost(8.5, 1, y_lost, 3.0, -1.7, y_lost))
+    y0 = y_lost + sign * 3.5
+    tr = VehicleTrack(id=7, first_t=10.0, lane_index=1, trajectory=[(10.0, -1.7, y0), (10.04, -1.7, y0 + sign * 0.12)])
+    st = VehicleState(7, 10.08, -1.7, y0 + sign * 0.24, y0 + sign * 0.24 - sign * 4.5, 0.0, sign * 3.0, 4.5, 6)
+    st.trajectory = list(tr.trajectory)
+    assert not g._entered(tr, st, 0.0)  # found again: it did not enter the view here
+    ys = [p[2] for p in st.trajectory] + [st.y_front]
+    crossed = sum((a - line) * sign < 0 <= (b - line) * sign for a, b in zip(ys, ys[1:]))
+    assert crossed == (1 if lost_before_line else 0)
+    assert g.lost == [] if lost_before_line else len(g.lost) == 1  # found once only
 
 
 @pytest.mark.parametrize("gap_m, bridge_y", [(6.0, (44.5,)), (6.0, (43.0, 46.0)), (14.0, (44.0, 48.0, 52.0))],
