@@ -1487,8 +1487,8 @@ class Grouper:
         not where a reported vehicle of its lane lost in the last LOST_KEEP_S could be by then (found again,
         it must not count again). Found again past its count line where it was lost short of it, it starts
         from where it was lost (st.trajectory, whose points are its front ``ahead`` of its near end), so that
-        it counts there once: a vehicle whose features were all lost just before the line (hidden by one in
-        the next lane, or crawling in a queue) was never counted."""
+        it counts there once: a vehicle whose features were all lost in its detection zone (hidden by one in
+        the next lane, or standing in a queue) and found again only past its count line was never counted."""
         if tr.lane_index <= 0:
             return False
         lz = self.zones.by_index(tr.lane_index)

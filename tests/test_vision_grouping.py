@@ -551,11 +551,12 @@ def test_a_vehicle_found_again_where_one_was_lost_has_not_entered_the_view():
     assert not entered(outside, 10.0)
 
 
-@pytest.mark.parametrize("lost_before_line", [True, False])
-def test_a_vehicle_lost_short_of_its_count_line_and_found_again_past_it_counts_there_once(lost_before_line):
-    """A car crawling in a queue at 3 m/s loses all its features 1 m short of its count line (hidden by a van
-    in the next lane) and is found again 1.5 s later, 3.5 m on, past the line: it starts from where it was
-    lost, so that it crosses the line and counts once. Lost past the line (counted then) it does not."""
+@pytest.mark.parametrize("found_past_line", [True, False])
+def test_a_vehicle_lost_in_its_detection_zone_and_found_again_past_its_count_line_counts_there_once(
+        found_past_line):
+    """A car at 8 m/s loses all its features at the end of its detection zone (hidden by a van in the next
+    lane) and is found again 2 s later, 2 m past its count line: it starts from where it was lost, so that it
+    crosses the line and counts once. Found again short of the line, it crosses it on its own."""
     from appliance.grouping import Lost
 
     site = parse_site(site_dict())
@@ -563,17 +564,17 @@ def test_a_vehicle_lost_short_of_its_count_line_and_found_again_past_it_counts_t
     g = Grouper(site.tracking, zones)
     lz = zones.by_index(1)
     sign, line = lz.sign, lz.count_y
-    y_lost = line - sign * (1.0 if lost_before_line else -1.0)
-    g.lost.append(Lost(8.5, 1, y_lost, 3.0, -1.7, y_lost))
-    y0 = y_lost + sign * 3.5
-    tr = VehicleTrack(id=7, first_t=10.0, lane_index=1, trajectory=[(10.0, -1.7, y0), (10.04, -1.7, y0 + sign * 0.12)])
-    st = VehicleState(7, 10.08, -1.7, y0 + sign * 0.24, y0 + sign * 0.24 - sign * 4.5, 0.0, sign * 3.0, 4.5, 6)
+    y_lost = lz.detection_y[0] + 0.5 if sign < 0 else lz.detection_y[1] - 0.5
+    g.lost.append(Lost(8.0, 1, y_lost, 8.0, -1.7, y_lost))
+    y0 = line + sign * (2.0 if found_past_line else -3.0)
+    tr = VehicleTrack(id=7, first_t=10.0, lane_index=1, trajectory=[(10.0, -1.7, y0), (10.04, -1.7, y0 + sign * 0.3)])
+    st = VehicleState(7, 10.08, -1.7, y0 + sign * 0.6, y0 + sign * 0.6 - sign * 4.5, 0.0, sign * 8.0, 4.5, 6)
     st.trajectory = list(tr.trajectory)
     assert not g._entered(tr, st, 0.0)  # found again: it did not enter the view here
     ys = [p[2] for p in st.trajectory] + [st.y_front]
-    crossed = sum((a - line) * sign < 0 <= (b - line) * sign for a, b in zip(ys, ys[1:]))
-    assert crossed == (1 if lost_before_line else 0)
-    assert g.lost == [] if lost_before_line else len(g.lost) == 1  # found once only
+    assert sum((a - line) * sign < 0 <= (b - line) * sign for a, b in zip(ys, ys[1:])) == int(found_past_line)
+    assert st.trajectory[0][0] == (8.0 if found_past_line else 10.0)
+    assert len(g.lost) == (0 if found_past_line else 1)  # found once only
 
 
 @pytest.mark.parametrize("gap_m, bridge_y", [(6.0, (44.5,)), (6.0, (43.0, 46.0)), (14.0, (44.0, 48.0, 52.0))],
