@@ -1435,10 +1435,9 @@ class Grouper:
             self._end_as_part(tr, tr.last, tr.votes[0], out)
         elif self._qualifies_on_loss(tr):
             out.append(self._finish(tr, exited=False))
-        elif tr.reported and tr.trajectory:
+        elif tr.reported and tr.trajectory:  # a reported vehicle has a last state
             last = tr.last
-            self.lost.append(Lost(t, tr.lane_index, tr.trajectory[-1][2], abs(last.vy) if last else 0.0,
-                                  last.x if last else float("nan"), last.y_front if last else float("nan")))
+            self.lost.append(Lost(t, tr.lane_index, tr.trajectory[-1][2], abs(last.vy), last.x, last.y_front))
 
     def _absorb(self, members: np.ndarray, host: int, host_members: np.ndarray, shade: bool | None = None) -> None:
         """A part's features become vehicle host's for good (linked to its features; with shade, marked as a
