@@ -167,7 +167,12 @@ ADOPT_TRAVEL_M = 5.0
 ADOPT_POINTS = 10
 ADOPT_EVERY = 5
 ADOPT_JOINED_SHARE = 0.95  # of the image between the two differing from the road (a follower's gap shows)
-MAX_HEIGHT_M = 4.5  # the tallest vehicle: bounds the height magnification of a fragment
+# A group found off the lanes (see Grouper.lifted) is adopted only as a top at least this high: a truck's, bus's or
+# artic's box (3-4.5 m), above any car's or van's roof. Off the lanes a follower's roof is seen as well, right
+# over a tall vehicle ahead that hides the road between the two; taken for that vehicle's top it made the
+# vehicle as long as the gap and its footprint swallowed the follower.
+LIFTED_TOP_M = 2.8
+LIFTED_LANES = 1000  # lane labels of features found off the lanes, for the pair graph (see Grouper.lifted)
 SPEED_WINDOW_S = 0.5  # speeds compared for the height magnification are averaged over this long
 # Reported length: each feature's place on the road behind the near end, from a straight-line fit of its
 # projected distance from the camera's foot against the near end's over its life in the group (slope: its
@@ -769,6 +774,9 @@ class Grouper:
         # per slot: a feature of a shadow joined to its vehicle (see _side_host), which keeps it from being
         # found as a vehicle again but is no part of its place on the road
         self.shade = np.zeros(n, np.bool_)
+        # per slot: found off the lanes, where only vehicles' tops are seen (see SiteZones._lifted): an elevated
+        # part of a vehicle, or nothing on the road; they do not count among a group's features (n_now, n_max)
+        self.lifted = np.zeros(n, np.bool_)
         self.tracks: dict[int, VehicleTrack] = {}
         self.next_vid = 1
         self.finished_total = 0
@@ -781,22 +789,24 @@ class Grouper:
         self.lost: list[Lost] = []  # reported vehicles lost
         self.foot = zones.camera  # (X, Y, height) of the camera, or None
         self.edge_rows = EDGE_ROWS_K * (params.search_radius_px + params.template_px // 2)
+        self.k_max = zones.k_max
         h = self.foot[2] if self.foot is not None else 0.0
-        self.k_max = min(2.5, h / (h - MAX_HEIGHT_M)) if h > MAX_HEIGHT_M + 0.5 else 2.5
+        self.k_top = h / (h - LIFTED_TOP_M) if h > LIFTED_TOP_M + 0.5 else self.k_max  # see LIFTED_TOP_M
 
     @property
     def min_report(self) -> int:
         """The features a group needs to be reported (at night one fewer: SMALL_S)."""
         return self.p.min_features - int(self.lights_only)
 
-    def reset_slots(self, slots: np.ndarray) -> None:
-        """Forget every pair involving slots that now hold new features."""
+    def reset_slots(self, slots: np.ndarray, lifted: np.ndarray | None = None) -> None:
+        """Forget every pair involving slots that now hold new features (lifted: which were found off the lanes)."""
         self.state[slots, :] = UNSEEN
         self.state[:, slots] = UNSEEN
         self.fvid[slots] = -1
         self.fit_vid[slots] = -1
         self.late[slots] = False
         self.shade[slots] = False
+        self.lifted[slots] = False if lifted is None else lifted
 
     def _components(self, t: float, live: np.ndarray, s: np.ndarray, age: np.ndarray, reported: np.ndarray
                     ) -> None:
@@ -886,17 +896,23 @@ class Grouper:
         small: list[tuple[int, np.ndarray]] = []  # groups of a lane too small to be reported: (id, members)
         self.merged_now = set()
         if len(live):
-            pair_update(live, s, lane, motion_class(s, age), self.state, self.rng, self.y0, p.connection_lateral_m,
-                        p.connection_m, p.segmentation_lateral_m, p.segmentation_m, p.segmentation_per_m, self.late)
+            # features found off the lanes link only among themselves: vehicles' tops, joined to a vehicle only
+            # as an adopted part (see ADOPT_K_MIN)
+            pair_update(live, s, np.where(self.lifted, lane + LIFTED_LANES, lane), motion_class(s, age), self.state,
+                        self.rng, self.y0, p.connection_lateral_m, p.connection_m, p.segmentation_lateral_m,
+                        p.segmentation_m, p.segmentation_per_m, self.late)
             reported = np.array(sorted(vid for vid, tr in self.tracks.items() if tr.reported), dtype=np.int64)
             self._components(t, live, s, age, reported)
             groups = self._assign_ids(live, reported)
         # shadow(group slots, host id): the image test for a group lying only on the host's shadow
+        # (a host's tops seen off the lanes are left out: they lie over whatever follows it in the image)
+        seen = {vid: m[~self.lifted[m]] for vid, m in groups.items()}
         shadow = None if is_shadow is None else (
-            lambda a, host: host in groups and is_shadow(px[a], px[groups[host]]))
+            lambda a, host: host in groups and len(seen[host]) > 0 and is_shadow(px[a], px[seen[host]]))
         # joined(group slots, host id): the image test for a group and the host being one body
         joined = None if is_joined is None else (
-            lambda a, host, share=None: host in groups and is_joined(px[a], px[groups[host]], share))
+            lambda a, host, share=None: host in groups and len(seen[host]) > 0
+            and is_joined(px[a], px[seen[host]], share))
         for vid in list(self.tracks):
             if vid not in groups:
                 self._lose(self.tracks.pop(vid), t, out)
@@ -908,8 +924,8 @@ class Grouper:
                 tr = VehicleTrack(id=vid, first_t=t, lane_index=li)
                 self.tracks[vid] = tr
             tr.frames += 1
-            tr.n_now = len(members)
-            tr.n_max = max(tr.n_max, len(members))
+            tr.n_now = len(members) - int(np.count_nonzero(self.lifted[members]))  # its tops off the lanes aside
+            tr.n_max = max(tr.n_max, tr.n_now)
             if not tr.reported and tr.n_max < self.min_report:
                 if not tr.trajectory:  # too small to be a vehicle yet: only remember where it started
                     tr.trajectory.append((t, float(s[members[0], 0]), float(s[members[0], 1])))
@@ -917,7 +933,7 @@ class Grouper:
                 if tr.lane_index > 0:
                     small.append((vid, members))
                 continue
-            own = members[~self.shade[members]]
+            own = members[~(self.shade[members] | self.lifted[members])]
             body, rep, length, vx, vy, spot, x, tr.x_lo, tr.x_hi = group_summary(
                 own if len(own) else members, s, px, age, NEAR_REP_M, SPOT_M, MOVING_MPS, STANDING_MPS, REP_FAST_K,
                 REP_FAST_MIN_MPS)
@@ -1036,7 +1052,8 @@ class Grouper:
         if small:
             members = np.concatenate([m for _, m in small])
             med = group_medians(members, np.cumsum([0] + [len(m) for _, m in small]), s, age)
-        self.late = self._late_slots(t, small, med, age)
+        on_road = [a for a, (_, m) in enumerate(small) if not self.lifted[m].all()]  # tops take no late links
+        self.late = self._late_slots(t, [small[a] for a in on_road], med[on_road] if small else None, age)
         for vid, members, host in self._adopted(t, small, med, joined):
             self._absorb(members, host, groups[host], shade=True)  # high up: no part of its place on the road
             self.tracks.pop(vid)
@@ -1157,6 +1174,7 @@ class Grouper:
                 & (da < qa) & (qa <= self.k_max * (da + ELEVATED_LENGTH_M + 1.0)))
         for a in np.flatnonzero(cand.any(axis=1)):
             tr, members, _ = due[a]
+            k_min = self.k_top if self.lifted[members].all() else ADOPT_K_MIN
             ys = _by_time(tr.path, t - ADOPT_S)
             best = None
             for i in np.flatnonzero(cand[a]):
@@ -1167,7 +1185,7 @@ class Grouper:
                 k, c, res = _line_fit(pairs[:, 1], pairs[:, 2], fy)
                 # its speed over the vehicle's now tells the same height (a near end held while the lowest
                 # feature changes, or at the image's edge, makes a follower's fit look like a part's)
-                if not ADOPT_K_MIN <= k <= self.k_max or abs(r[a, i] / k - 1.0) > ADOPT_K_TOL \
+                if not k_min <= k <= self.k_max or abs(r[a, i] / k - 1.0) > ADOPT_K_TOL \
                         or res > ADOPT_RES_SHARE * abs(q[a]) or (best is not None and res >= best[0]):
                     continue
                 place = c / k * np.sign(d[i])

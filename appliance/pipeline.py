@@ -439,13 +439,20 @@ class VisionPipeline:
             return
         shift = (int(round(self.offset[0])), int(round(self.offset[1])))
         prev = self._aligned_prev()
-        pts = self.detector.detect(img, prev, tr.px[live], shift)[:free]
+        # corners in the lanes keep their spacing from the lanes' features only: a top seen off the lane, right
+        # at its edge, must not keep the vehicle's own corners there from being found
+        pts = self.detector.detect(img, prev, tr.px[live[~self.grouper.lifted[live]]], shift)[:free]
         revealed = np.zeros(len(pts), np.bool_)
         reveal = self.startup_zone if t - self.first_t <= STARTUP_S else self._revealed(t)
         if reveal is not None and len(pts) < free:
             more = self.detector.detect(img, prev, np.concatenate([tr.px[live], pts]), shift, reveal)[:free - len(pts)]
             pts = np.concatenate([pts, more])
             revealed = np.r_[revealed, np.ones(len(more), np.bool_)]
+        lifted = self.zones.lifted_zone
+        if lifted is not None and len(pts) < free:  # vehicles' tops off the lanes: what the lanes leave over
+            more = self.detector.detect(img, prev, np.concatenate([tr.px[live], pts]), shift, lifted)[:free - len(pts)]
+            pts = np.concatenate([pts, more])
+            revealed = np.r_[revealed, np.zeros(len(more), np.bool_)]
         if not len(pts):
             return
         # where each new corner was one frame earlier (pyramidal LK), for its initial velocity
@@ -460,7 +467,7 @@ class VisionPipeline:
         ok = status.reshape(-1).astype(bool)
         pts, prev_pts = pts[ok], prev_pts.reshape(-1, 2)[ok].astype(np.float64) + [x0, y0]
         ref = pts - np.asarray(self.offset)
-        lanes = self.zones.lane_at_px(ref)
+        lanes = self.zones.lane_at_px(ref, lifted=True)
         keep = lanes > 0
         revealed = revealed[ok] & keep
         if revealed.any():
@@ -472,7 +479,7 @@ class VisionPipeline:
         if not len(pts):
             return
         slots = tr.add(img, pts, prev_pts, self.offset, dt, t, lanes)
-        self.grouper.reset_slots(slots)
+        self.grouper.reset_slots(slots, self.zones.lane_at_px(tr.born_px[slots]) == 0)
 
     def _note_covers(self, t: float) -> None:
         """Mark the cells each reported vehicle's features span now as covered at t by its lane (see REVEAL_S)."""

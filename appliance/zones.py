@@ -16,6 +16,8 @@ from appliance.geometry import Homography
 
 DETECTION_ROW_SHARE = 0.7  # share of the rows between the entry edge and the count line where features start
 EXIT_ROW_SHARE = 0.12  # exit share of the lane's image rows where vehicles are finalised
+TALLEST_M = 4.5  # the tallest vehicle: bounds how much further its top is seen than the road under it
+MAX_GAIN = 2.5  # ... by at most this factor (a camera barely above the tallest vehicle, or of unknown height)
 
 
 @dataclass
@@ -67,6 +69,18 @@ def _default_ranges(H: Homography, poly_px: np.ndarray, ylo: float, yhi: float, 
     return det, ext
 
 
+def _zone_roi(img: np.ndarray, margin: int = 4) -> tuple[tuple[int, int, int, int], np.ndarray] | None:
+    """The ROI (x0, y0, x1, y1) of a zone image's non-zero pixels, with room for the corner window, and the
+    zone's 0/255 mask over it; None for an empty zone."""
+    ys, xs = np.nonzero(img)
+    if len(xs) == 0:
+        return None
+    h, w = img.shape
+    x0, y0 = max(0, int(xs.min()) - margin), max(0, int(ys.min()) - margin)
+    x1, y1 = min(w, int(xs.max()) + margin + 1), min(h, int(ys.max()) + margin + 1)
+    return (x0, y0, x1, y1), np.ascontiguousarray((img[y0:y1, x0:x1] > 0).astype(np.uint8) * 255)
+
+
 def _poly_px(H: Homography, poly_m: np.ndarray, y0: float, y1: float) -> np.ndarray:
     part = clip_polygon_y(poly_m, y0, y1)
     if len(part) < 3:
@@ -113,9 +127,13 @@ class SiteZones:
                 )
             )
         self.camera = camera_from_homography(H, self.width, self.height)
+        h = self.camera[2] if self.camera is not None else 0.0
+        # a vehicle's top is seen this many times further from the camera's foot than the road under it, at most
+        self.k_max = min(MAX_GAIN, h / (h - TALLEST_M)) if h > TALLEST_M + 0.5 else MAX_GAIN
         self.lane_image = self._paint("polygon_px")  # 0 = no lane, else LaneZones.index
         self.detection_image = self._paint("detection_px")
         self.exit_image = self._paint("exit_px")
+        self.lifted_image = self._lifted()
         ys, xs = np.nonzero(self.detection_image)
         if len(xs) == 0:
             raise ValueError("no detection zone falls inside the image")
@@ -129,6 +147,7 @@ class SiteZones:
         )
         x0, y0, x1, y1 = self.detection_roi
         self.detection_mask_roi = np.ascontiguousarray((self.detection_image[y0:y1, x0:x1] > 0).astype(np.uint8) * 255)
+        self.lifted_zone = _zone_roi(self.lifted_image)  # (ROI, its mask) or None
         self.sign_by_index = np.array([0] + [lz.sign for lz in self.lanes], dtype=np.int32)
         self.lane_extent_by_index = np.array([[0.0, 0.0]] + [list(lz.y_extent) for lz in self.lanes])
 
@@ -140,12 +159,32 @@ class SiteZones:
                 cv2.fillPoly(img, [np.round(pts).astype(np.int32)], int(lz.index))
         return img
 
-    def lane_at_px(self, px: np.ndarray) -> np.ndarray:
-        """Lane index (0 = none) under each image point (N, 2)."""
+    def _lifted(self) -> np.ndarray:
+        """Off the lanes, where the tops of vehicles in a lane's detection zone are seen (an approaching truck's
+        box beyond the far lane, leaning away from the camera): that lane's index, else 0. Where two lanes' tops
+        may be seen, the lane further from the camera's foot across the road (nearer there). All 0 without a
+        camera."""
+        img = np.zeros((self.height, self.width), np.uint8)
+        if self.camera is None:
+            return img
+        foot = np.array(self.camera[:2])
+        for lz in sorted(self.lanes, key=lambda lz: abs(float(lz.polygon_m[:, 0].mean()) - foot[0])):
+            part = clip_polygon_y(lz.polygon_m, *lz.detection_y)
+            if len(part) < 3:
+                continue
+            hull = cv2.convexHull(np.concatenate([part, foot + (part - foot) * self.k_max]).astype(np.float32))
+            cv2.fillPoly(img, [np.round(self.H.road_to_img(hull.reshape(-1, 2))).astype(np.int32)], int(lz.index))
+        img[self.lane_image > 0] = 0
+        return img
+
+    def lane_at_px(self, px: np.ndarray, lifted: bool = False) -> np.ndarray:
+        """Lane index (0 = none) under each image point (N, 2); with lifted, off the lanes the lane whose
+        vehicles' tops may be seen there (see _lifted)."""
         p = np.asarray(px).reshape(-1, 2)
         x = np.clip(np.round(p[:, 0]).astype(np.int64), 0, self.width - 1)
         y = np.clip(np.round(p[:, 1]).astype(np.int64), 0, self.height - 1)
-        return self.lane_image[y, x].astype(np.int32)
+        lane = self.lane_image[y, x].astype(np.int32)
+        return np.where(lane > 0, lane, self.lifted_image[y, x]) if lifted else lane
 
     def lane_at_road(self, x: float, y: float) -> LaneZones | None:
         """The lane whose road polygon holds road point (x, y), or None."""

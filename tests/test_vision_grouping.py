@@ -890,3 +890,52 @@ def test_a_car_seen_only_at_its_front_is_a_car_but_a_motorcycle_stays_short():
         seen = _run([vehicle], frames=40)
         last = [ss[-1].length for ss in seen.values()]
         assert len(last) == 1 and shortest <= last[0] <= longest, (x0, x1, last)
+
+
+def test_features_found_off_the_lanes_never_make_a_vehicle_of_their_own():
+    """Corners found off the lanes (a tall vehicle's top leaning over the shoulder, see SiteZones._lifted) are
+    no vehicle of their own: four moving together are never reported, nor does one make up the fourth corner
+    (min_features) of a group with three in the lane; the same four found in the lane are a vehicle."""
+
+    def reported(lifted: list[bool]) -> bool:
+        site = parse_site(site_dict())
+        g = Grouper(site.tracking, SiteZones(site))
+        n = site.tracking.max_features
+        s, px = np.zeros((n, 4)), np.zeros((n, 2))
+        lane, alive, age = np.zeros(n, np.int32), np.zeros(n, np.bool_), np.zeros(n, np.int32)
+        ground = [(-2.0, 70.0), (-1.5, 71.0), (-2.2, 72.0), (-1.2, 72.5)]
+        g.reset_slots(np.arange(len(ground)), np.array(lifted))
+        out = []
+        for f in range(50):
+            t = f * DT
+            for i, (x, y) in enumerate(ground):
+                s[i] = (x, y - 15.0 * t, 0.0, -15.0)
+                px[i] = (100.0 + 10 * i, 100.0 + 3 * f)
+                lane[i], alive[i], age[i] = 1, True, f
+            states, _ = g.step(t, s, px, lane, alive, age)
+            out += states
+        return len(out) > 0
+
+    assert parse_site(site_dict()).tracking.min_features == 4
+    assert reported([False] * 4)
+    assert not reported([True] * 4)
+    assert not reported([False, False, False, True])
+
+
+def test_the_tops_of_the_far_lanes_vehicles_are_searched_off_the_lanes_under_its_label():
+    """Beyond the lane furthest from the camera's foot, where a truck's box in it is seen, corners are searched
+    and labelled with that lane; on the lanes nothing changes (their own label)."""
+    site = parse_site(site_dict())
+    z = SiteZones(site)
+    assert z.camera is not None and z.lifted_zone is not None
+    assert not z.lifted_image[z.lane_image > 0].any()
+    fx, fy, ch = z.camera
+    far = max(z.lanes, key=lambda lz: abs(float(lz.polygon_m[:, 0].mean()) - fx))
+    edge = far.polygon_m[:, 0].min() if far.polygon_m[:, 0].mean() < fx else far.polygon_m[:, 0].max()
+    k = ch / (ch - 3.5)  # a box top 3.5 m high over the lane's outer edge, mid-way along its detection zone
+    gx, gy = edge - 0.3 * np.sign(fx - edge), 0.5 * sum(far.detection_y)
+    top = z.H.road_to_img(np.array([[fx + k * (gx - fx), fy + k * (gy - fy)]]))
+    assert z.lane_at_px(top)[0] == 0
+    assert z.lane_at_px(top, lifted=True)[0] == far.index
+    on_lane = z.H.road_to_img(np.array([[float(far.polygon_m[:, 0].mean()), gy]]))
+    assert z.lane_at_px(on_lane, lifted=True)[0] == z.lane_at_px(on_lane)[0] == far.index
