@@ -904,15 +904,19 @@ class Grouper:
             reported = np.array(sorted(vid for vid, tr in self.tracks.items() if tr.reported), dtype=np.int64)
             self._components(t, live, s, age, reported)
             groups = self._assign_ids(live, reported)
+
+        def seen(host: int) -> np.ndarray:
+            """A host's slots but its tops seen off the lanes (they lie over whatever follows it in the image)."""
+            m = groups[host]
+            return m[~self.lifted[m]]
+
         # shadow(group slots, host id): the image test for a group lying only on the host's shadow
-        # (a host's tops seen off the lanes are left out: they lie over whatever follows it in the image)
-        seen = {vid: m[~self.lifted[m]] for vid, m in groups.items()}
         shadow = None if is_shadow is None else (
-            lambda a, host: host in groups and len(seen[host]) > 0 and is_shadow(px[a], px[seen[host]]))
+            lambda a, host: host in groups and len(seen(host)) > 0 and is_shadow(px[a], px[seen(host)]))
         # joined(group slots, host id): the image test for a group and the host being one body
         joined = None if is_joined is None else (
-            lambda a, host, share=None: host in groups and len(seen[host]) > 0
-            and is_joined(px[a], px[seen[host]], share))
+            lambda a, host, share=None: host in groups and len(seen(host)) > 0
+            and is_joined(px[a], px[seen(host)], share))
         for vid in list(self.tracks):
             if vid not in groups:
                 self._lose(self.tracks.pop(vid), t, out)

@@ -134,19 +134,11 @@ class SiteZones:
         self.detection_image = self._paint("detection_px")
         self.exit_image = self._paint("exit_px")
         self.lifted_image = self._lifted()
-        ys, xs = np.nonzero(self.detection_image)
-        if len(xs) == 0:
+        detection = _zone_roi(self.detection_image)
+        if detection is None:
             raise ValueError("no detection zone falls inside the image")
-        # ROI (x0, y0, x1, y1) of all detection zones, with room for the corner window
-        m = 4
-        self.detection_roi = (
-            max(0, int(xs.min()) - m),
-            max(0, int(ys.min()) - m),
-            min(self.width, int(xs.max()) + m + 1),
-            min(self.height, int(ys.max()) + m + 1),
-        )
-        x0, y0, x1, y1 = self.detection_roi
-        self.detection_mask_roi = np.ascontiguousarray((self.detection_image[y0:y1, x0:x1] > 0).astype(np.uint8) * 255)
+        # ROI (x0, y0, x1, y1) of all detection zones, with room for the corner window, and their mask over it
+        self.detection_roi, self.detection_mask_roi = detection
         self.lifted_zone = _zone_roi(self.lifted_image)  # (ROI, its mask) or None
         self.sign_by_index = np.array([0] + [lz.sign for lz in self.lanes], dtype=np.int32)
         self.lane_extent_by_index = np.array([[0.0, 0.0]] + [list(lz.y_extent) for lz in self.lanes])
