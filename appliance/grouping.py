@@ -207,6 +207,9 @@ SIDE_MAX_WIDTH_M = 3.5  # joint footprint width (two cars side by side span >= 5
 # a 4 m high box from a 10 m pole spans 1.7 times its width; two cars side by side have road between them)
 SIDE_MAX_WIDTH_TALL_M = 7.0
 SIDE_TALL_HOST_M = 8.0  # ... of a vehicle this long in projection (a car beside a car in the next lane is shorter)
+# ... and the group smaller than the vehicle when together they are as wide as two cars side by side (lane 3.5 m
+# + car 1.7 m): a receding car entering beside another is as long in projection and as big as it
+SIDE_PAIR_WIDTH_M = 5.2
 # ... wider when the new group is only a shadow on the road (the image test says so): cast sideways by a
 # low sun it reaches a lane or more across, starting a little behind or ahead of the vehicle
 SHADOW_MAX_WIDTH_M = 9.0
@@ -1438,6 +1441,7 @@ class Grouper:
                     return vid
             elif (flank and sign > 0 and gap <= SIDE_GAP_M and width <= SIDE_MAX_WIDTH_TALL_M and dy <= SIDE_DY_M
                   and dv <= SIDE_SPEED_TOL and hi - lo >= SIDE_TALL_HOST_M and self._leans_away(st.x, o.x)
+                  and (width <= SIDE_PAIR_WIDTH_M or tr.n_now < other.n_now)
                   and joined is not None and joined(members, vid)):
                 return vid  # a tall vehicle's flank or top, wider in projection: the image between is its body
             if gap <= SHADOW_GAP_M and width <= SHADOW_MAX_WIDTH_M and shadow is not None and shadow(members, vid):

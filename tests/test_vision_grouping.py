@@ -939,3 +939,16 @@ def test_the_tops_of_the_far_lanes_vehicles_are_searched_off_the_lanes_under_its
     assert z.lane_at_px(top, lifted=True)[0] == far.index
     on_lane = z.H.road_to_img(np.array([[float(far.polygon_m[:, 0].mean()), gy]]))
     assert z.lane_at_px(on_lane, lifted=True)[0] == z.lane_at_px(on_lane)[0] == far.index
+
+
+@pytest.mark.parametrize("n, counted", [(10, 1), (24, 2)])
+def test_a_car_entering_beside_a_receding_car_long_in_projection_is_no_flank_of_it(n, counted):
+    """Receding traffic enters at the image bottom, seen from beside the road, where a car near the camera is long
+    in projection (8 m: its roof magnified). A group just across the lane line beyond it (where its raised parts
+    lean), moving with it and the image between them one body, is its flank or top when smaller than it; one as
+    big, together as wide as two cars side by side, is a car entering beside it and stays a vehicle."""
+    lanes = (("receding", 0.0, 3.5), ("receding", 3.5, 7.0))
+    car = (_box(0.2, 2.9, 10.0, 18.5, 24, 61), 10.0, 1, 0, 0.0)
+    beside = (np.column_stack([np.linspace(3.3, 6.6, n), np.linspace(10.0, 12.5, n)]), 10.0, 2, 0, 0.0)
+    seen = _run([car, beside], lanes=lanes, joined=True)
+    assert _counted(seen, receding=True) == counted, _firsts(seen)
