@@ -793,8 +793,7 @@ class Grouper:
         self.foot = zones.camera  # (X, Y, height) of the camera, or None
         self.edge_rows = EDGE_ROWS_K * (params.search_radius_px + params.template_px // 2)
         self.k_max = zones.k_max
-        h = self.foot[2] if self.foot is not None else 0.0
-        self.k_top = h / (h - LIFTED_TOP_M) if h > LIFTED_TOP_M + 0.5 else self.k_max  # see LIFTED_TOP_M
+        self.k_top = zones.magnification(LIFTED_TOP_M) or self.k_max  # see LIFTED_TOP_M
 
     @property
     def min_report(self) -> int:

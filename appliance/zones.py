@@ -127,9 +127,9 @@ class SiteZones:
                 )
             )
         self.camera = camera_from_homography(H, self.width, self.height)
-        h = self.camera[2] if self.camera is not None else 0.0
         # a vehicle's top is seen this many times further from the camera's foot than the road under it, at most
-        self.k_max = min(MAX_GAIN, h / (h - TALLEST_M)) if h > TALLEST_M + 0.5 else MAX_GAIN
+        k = self.magnification(TALLEST_M)
+        self.k_max = MAX_GAIN if k is None else min(MAX_GAIN, k)
         self.lane_image = self._paint("polygon_px")  # 0 = no lane, else LaneZones.index
         self.detection_image = self._paint("detection_px")
         self.exit_image = self._paint("exit_px")
@@ -142,6 +142,12 @@ class SiteZones:
         self.lifted_zone = _zone_roi(self.lifted_image)  # (ROI, its mask) or None
         self.sign_by_index = np.array([0] + [lz.sign for lz in self.lanes], dtype=np.int32)
         self.lane_extent_by_index = np.array([[0.0, 0.0]] + [list(lz.y_extent) for lz in self.lanes])
+
+    def magnification(self, height_m: float) -> float | None:
+        """How many times further from the camera's foot a point this high above the road is seen than the road
+        under it; None without a camera, or with one not well above that height."""
+        h = self.camera[2] if self.camera is not None else 0.0
+        return h / (h - height_m) if h > height_m + 0.5 else None
 
     def _paint(self, attr: str) -> np.ndarray:
         img = np.zeros((self.height, self.width), np.uint8)
