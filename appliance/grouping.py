@@ -249,15 +249,6 @@ LATE_HOST_K_SPREAD = 0.15
 # stand at the image's edge for a few frames, their time counted without distance: where a camera has
 # drifted so far that its image ends inside the Edie region, speeds read 5-7 % low.)
 EDGE_ROWS_K = 3.0
-# A near end whose feature is lost is carried on by the features fitted against it (see near_by_fits) only where
-# they place it within this of where it was: else that feature was no part of the vehicle (a corner of the one
-# ahead, linked for a frame or two) and the near end waits for the vehicle's next lowest feature
-CARRY_AGREE_M = 1.5
-# ... and only while the vehicle moves slower than this: at speed the next lowest feature reaches the near end's
-# place within a fraction of a second, in a crawl it may never (the vehicle stops in a queue). (Carried at any
-# speed, the synthetic scenes' lanes within 3 % went 64 -> 68 of 108 but speeds within 2.5 % 88 -> 82: far lanes'
-# vehicles, their fronts hidden by nearer lanes' for a moment, read 1-1.5 % faster in dense traffic.)
-CARRY_MAX_MPS = 10.0
 
 
 @njit(cache=True)
@@ -595,32 +586,6 @@ def fit_places(members, age, s, fit, fit_vid, vid, d, cy, k_max, frames, min_var
 
 
 @njit(cache=True)
-def near_by_fits(members, s, fit, fit_vid, vid, cy, k_max, frames, min_var):
-    """Where a group's near end lies (its distance from the camera's foot along the road), as its fitted features
-    (see fit_places) place it: each lies at k times the distance of a point a constant behind the near end. The
-    median over them, NaN with fewer than two fitted."""
-    est = np.empty(members.shape[0])
-    n_ok = 0
-    for a in range(members.shape[0]):
-        i = members[a]
-        if fit_vid[i] != vid:
-            continue
-        n = fit[i, 0]
-        if n < frames:
-            continue
-        var = fit[i, 3] / n - (fit[i, 1] / n) ** 2
-        if var < min_var:
-            continue
-        cov = fit[i, 4] / n - fit[i, 1] * fit[i, 2] / (n * n)
-        k = min(max(cov / var, 1.0), k_max)
-        est[n_ok] = (s[i, 1] - cy) / k - (fit[i, 2] / n / k - fit[i, 1] / n)
-        n_ok += 1
-    if n_ok < 2:
-        return np.nan
-    return _median_of(est[:n_ok])
-
-
-@njit(cache=True)
 def _median_of(a):
     """np.median's value for the few numbers of one group, without its overhead."""
     a = np.sort(a)
@@ -767,7 +732,6 @@ class VehicleTrack:
     near_slot: int = -1  # the near end's feature in the last frame ...
     near_row: float = 0.0  # ... its image row then
     leaving: bool = False  # its near end has left the image at its bottom (see EDGE_ROWS_K)
-    carry: float | None = None  # its near end's place less where its fitted features put it, while they carry it
 
     def elevated_x(self) -> tuple[float, float]:
         """Across the road, where an elevated part of it may lie (its height undone): its footprint, widened to
@@ -984,31 +948,15 @@ class Grouper:
             rep_y = float(s[rep, 1])
             # The representative point is the near end: the front of an approaching vehicle, the rear of a
             # receding one. It never goes backwards: when the lowest feature is lost and the next one is further
-            # back, the near end goes on as far as the features fitted against it move it (see near_by_fits)
-            # until the lowest feature catches up, or else waits for it. (Carrying it on at the vehicle's speed
-            # instead made it creep ahead of the vehicle: every change of lowest feature, between features at
-            # about the same place, added a lead, and the features' speed is above the road's for any feature
-            # above the road. Waiting, the near end of a vehicle whose front is hidden by a vehicle in a nearer
-            # lane stood still until the vehicle was lost, short of its count line, in a queue.)
+            # back, the near end waits for it. (Carrying it on at the vehicle's speed instead made it creep
+            # ahead of the vehicle: every change of lowest feature, between features at about the same place,
+            # added a lead, and the features' speed is above the road's for any feature above the road.)
             if tr.trajectory:
                 prev = tr.trajectory[-1][2]
                 if sign < 0 and rep_y > prev and (tr.leaving or (
                         tr.near_slot not in members and tr.near_row >= self.zones.height - self.edge_rows)):
                     tr.leaving = True  # see EDGE_ROWS_K
                     rep_y = prev + vy * (t - tr.trajectory[-1][0])
-                elif sign < 0 and rep_y > prev and self.foot is not None and (
-                        tr.carry is not None or (tr.near_slot not in members and abs(vy) < CARRY_MAX_MPS)):
-                    d = near_by_fits(body, s, self.fit, self.fit_vid, tr.id, self.foot[1], self.k_max, FIT_FRAMES,
-                                     FIT_TRAVEL_SD_M ** 2)
-                    carry = tr.carry
-                    if d == d and carry is None:  # it moved on this frame at the features' speed
-                        carry = prev + vy * (t - tr.trajectory[-1][0]) - (self.foot[1] + d)
-                        carry = carry if abs(carry) <= CARRY_AGREE_M else None
-                    if d == d and carry is not None:  # on as far as the fits place it, from where they took over
-                        rep_y = min(rep_y, self.foot[1] + d + carry)
-                    tr.carry = carry if d == d else None
-                else:
-                    tr.carry = None
                 rep_y = min(prev, rep_y) if sign < 0 else max(prev, rep_y)
             else:
                 tr.start_y = rep_y
@@ -1299,8 +1247,6 @@ class Grouper:
         share of the length. Without the camera: the features' span."""
         if self.foot is None or tr.lane_index <= 0:
             return length
-        if tr.carry is not None and tr.ground:
-            return tr.ground[0]  # the fits place the near end now: fitting them against it would feed back
         if sign > 0 and tr.fitted and tr.ground:
             # a receding vehicle is seen best as it enters, nearest the camera; its far end moves with it
             # from then on (a length that kept changing would add distance or time it did not travel)

@@ -258,20 +258,6 @@ def fit_places_ref(members, age, s, fit, fit_vid, vid, d, cy, k_max, frames, min
     return float(places[1:][close][-1]) if close.any() else float(np.median(places))
 
 
-def near_by_fits_ref(members, s, fit, fit_vid, vid, cy, k_max, frames, min_var) -> float:
-    """Same contract as grouping.near_by_fits, vectorised over the group's features."""
-    m = members[fit_vid[members] == vid]
-    f = fit[m]
-    n = np.maximum(f[:, 0], 1.0)
-    var = f[:, 3] / n - (f[:, 1] / n) ** 2
-    cov = f[:, 4] / n - f[:, 1] * f[:, 2] / (n * n)
-    ok = (f[:, 0] >= frames) & (var >= min_var)
-    if ok.sum() < 2:
-        return float("nan")
-    k = np.clip(cov[ok] / var[ok], 1.0, k_max)
-    return float(np.median((s[m[ok], 1] - cy) / k - (f[ok, 2] / n[ok] / k - f[ok, 1] / n[ok])))
-
-
 def group_summary_ref(members, s, px, age, near_m, spot_m, moving, standing, fast, fast_min) -> tuple:
     """Same contract as grouping.group_summary, with NumPy on the group's features."""
     v = np.abs(s[members, 3])

@@ -606,59 +606,6 @@ def test_a_queued_car_with_few_features_left_is_not_joined_to_the_one_behind_by_
     assert _counted(seen) == 2, _firsts(seen)
 
 
-@pytest.mark.parametrize("fits", [True, False])
-def test_a_near_end_whose_corners_are_lost_goes_on_where_the_features_behind_place_it(monkeypatch, fits):
-    """An approaching van crawling at 6 m/s loses its bumper corners 1.8 s in (hidden behind a vehicle of a
-    nearer lane); its body's corners, 0.7 m up and 1 to 4 m behind its front, lie further out in projection.
-    Their straight-line fits against the near end place the near end: it goes on with the van, no further
-    behind its front than before. Waiting for the next lowest corner instead holds it and leaves it 2 m or more
-    further behind (a van stopping in a queue would be lost there, short of its count line)."""
-    import appliance.grouping as grouping
-
-    if not fits:
-        monkeypatch.setattr(grouping, "near_by_fits", lambda *a: np.nan)
-    front0, v, lost_f = 65.0, -6.0, 45
-    bumper = (_box(-2.6, -0.9, front0, front0 + 0.6, 4, 1), v, 1, 0, 0.3, lost_f)
-    body = (_box(-2.6, -0.9, front0 + 1.0, front0 + 4.0, 8, 2), v, 1, 0, 0.7)
-    seen = _run([bumper, body], frames=110)
-    assert len(seen) == 1, _firsts(seen)
-    states = [st for st in next(iter(seen.values())) if not st.finished]
-    lag = {round(st.t / DT): st.y_front - (front0 + v * st.t) for st in states}  # behind the front
-    before, after = lag[lost_f - 1], [lag[f] for f in lag if f >= lost_f]
-    assert len(after) > 40
-    if fits:
-        assert max(after) < before + 0.1 and min(after) > before - 1.0, (before, after)
-    else:
-        assert max(after) > before + 2.0
-
-
-@pytest.mark.parametrize("guard", [True, False])
-def test_a_near_end_is_not_carried_on_from_a_corner_ahead_of_its_vehicle(monkeypatch, guard):
-    """CARRY_AGREE_M: a corner on the road 3 m ahead of a crawling van's bumper joins its group for 0.6 s and is
-    its near end; then it is lost with the bumper corners. The van's fitted features place its near end 5 m
-    behind where that corner left it, so the near end waits there for the van (whose body then leads it);
-    carried on from there it would stay 3 m ahead of the van for good."""
-    import appliance.grouping as grouping
-
-    if not guard:
-        monkeypatch.setattr(grouping, "CARRY_AGREE_M", 1e9)
-    front0, v = 65.0, -6.0
-    bumper = (_box(-2.6, -0.9, front0, front0 + 0.6, 4, 1), v, 1, 0, 0.3, 50)
-    body = (_box(-2.6, -0.9, front0 + 1.0, front0 + 4.0, 8, 2), v, 1, 0, 0.7)
-    stray = (np.array([[-1.7, front0 - 3.0]]), v, 1, 36, 0.0, 50)
-    seen = _run([bumper, body, stray], frames=100)
-    assert len(seen) == 1, _firsts(seen)
-    states = [st for st in next(iter(seen.values())) if not st.finished]
-    lead = {round(st.t / DT): (front0 + v * st.t) - st.y_front for st in states}  # ahead of the front
-    assert lead[49] > 2.5  # the stray corner leads
-    late = [lead[f] for f in lead if f >= 85]
-    assert len(late) > 10
-    if guard:
-        assert max(late) < 0.0, late
-    else:
-        assert min(late) > 3.0, late
-
-
 def test_a_near_end_held_at_the_image_edge_does_not_slow_the_vehicle():
     """A receding vehicle entering at the image's bottom edge: its lowest visible point stays at the edge
     until its rear is in view, while its features move at its speed. The speed of that held point is a

@@ -10,7 +10,7 @@ from appliance import kernels_ref as ref
 from appliance.background import PAD_PX, shadow_at
 from appliance.corners import select_spaced
 from appliance.grouping import (alone_groups, assign_ids, components, fit_places, group_medians, group_summary,
-                                isolate, near_by_fits, pair_update, unbridge)
+                                isolate, pair_update, unbridge)
 from appliance.tracker import extract_template, track_step
 
 
@@ -330,34 +330,6 @@ def test_fit_places_falls_back_to_the_median_and_waits_for_a_late_joiner_further
     both = np.arange(4, dtype=np.int64)
     assert np.isnan(fit_places(both, age, s, fit.copy(), fit_vid.copy(), 5, d, *args))
     assert np.isnan(ref.fit_places_ref(both, age, s, fit2, fit_vid2, 5, d, *args))
-
-
-def test_near_by_fits_places_the_near_end_from_the_fitted_features_as_the_reference_does():
-    """Features at random heights and places behind a near end, fitted over its approach: from their places
-    alone (the near end itself unseen) they put it where it is, within their noise, as the reference does; a
-    group with one fitted feature, or fitted for another group, gives no answer."""
-    rng = np.random.default_rng(3)
-    n = 10
-    place, k = rng.uniform(0.5, 6.0, n), rng.uniform(1.0, 1.4, n)
-    fit, fit_vid = np.zeros((n, 5)), np.full(n, -1, np.int64)
-    members = np.arange(n, dtype=np.int64)
-    age = np.full(n, 5, np.int32)
-    args = (0.0, 1.82, 10, 2.25)
-    for f in range(30):
-        d = 80.0 - 0.8 * f
-        s = np.zeros((n, 4))
-        s[:, 1] = k * (d + place) + rng.normal(0.0, 0.05, n)
-        if f == 5:
-            assert np.isnan(near_by_fits(members, s, fit, fit_vid, 5, *args))  # none fitted yet
-        fit_places(members, age, s, fit, fit_vid, 5, d, 0.0, 1.82, 10, 2.25, 1.0)
-    d = 40.0
-    s[:, 1] = k * (d + place)
-    a = near_by_fits(members, s, fit, fit_vid, 5, *args)
-    assert a == pytest.approx(d, abs=0.15)
-    assert a == pytest.approx(ref.near_by_fits_ref(members, s, fit, fit_vid, 5, *args), abs=1e-9)
-    assert np.isnan(near_by_fits(members[:1], s, fit, fit_vid, 5, *args))
-    assert np.isnan(ref.near_by_fits_ref(members[:1], s, fit, fit_vid, 5, *args))
-    assert np.isnan(near_by_fits(members, s, fit, fit_vid, 6, *args))
 
 
 def test_group_summary_matches_reference():
