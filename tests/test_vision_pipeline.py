@@ -483,8 +483,8 @@ def test_backfill_rules():
     from appliance.pipeline import _own_start
     t = np.arange(2000) * 0.04
     assert _own_start(t, np.r_[np.full(1980, 80.0), 80.0 - 0.8 * np.arange(1, 21)]) == 1979
-    # a standstill's last point stamped with the same time as the last point (a repeated frame's) is no start:
-    # no time to move off in (the speed since would divide by zero); the one before it is
+    # a standstill whose last point bears the same time as the trajectory's last point is no start: no time to
+    # move off in (the speed since would divide by zero); the one before it is
     t = np.r_[np.arange(20) * 0.04, 0.76]
     assert _own_start(t, np.r_[np.full(20, 80.0), 79.0]) == 18
     # the entry lies at the speed over its held points (0.5 s) when they agree with its near end's velocity
