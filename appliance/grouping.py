@@ -249,6 +249,18 @@ LATE_HOST_K_SPREAD = 0.15
 # stand at the image's edge for a few frames, their time counted without distance: where a camera has
 # drifted so far that its image ends inside the Edie region, speeds read 5-7 % low.)
 EDGE_ROWS_K = 3.0
+# A receding vehicle enters the view at the image's bottom, front first: until its rear is in view its lowest
+# visible point stays in the bottom rows, ahead of its rear. A group not yet reported whose near end lies within
+# ENTER_ROWS_K times the tracker's reach of the bottom starts its trajectory afresh (as after a standstill,
+# STILL_S): counted from when its front came into view, its time in the Edie region ran 0.2 s long, and the
+# receding lanes' speeds read 2-4 % low.
+ENTER_ROWS_K = 2.0
+# A feature younger than SETTLED_AGE moving its group's way at under this share of the median speed of the
+# group's settled features (when that is MOVING_MPS or more) is not its near end: a corner on the road just
+# uncovered behind a receding vehicle, whose first flow the vehicle's edge dragged along, is linked to it before
+# its speed settles and would hold the near end back. (Settled features may be that slow: a truck's bumper
+# under a low camera moves at half the speed of its box's top in projection.)
+SLOW_REP_SHARE = 0.5
 
 
 @njit(cache=True)
@@ -613,10 +625,13 @@ def group_summary(members, s, px, age, near_m, spot_m, moving, standing, fast, f
     v_max = fast * _median_of(np.abs(s[settled, 3])) if settled.shape[0] >= 4 else np.inf
     if v_max < fast * fast_min:
         v_max = np.inf
+    v_med = _median_of(s[settled, 3]) if settled.shape[0] >= 2 else 0.0
+    v_slow = SLOW_REP_SHARE * abs(v_med) if abs(v_med) >= moving else -np.inf
     rep = -1
     y_lo = y_hi = s[body[0], 1]
     for i in body:
-        if (rep < 0 or px[i, 1] > px[rep, 1]) and not (age[i] >= 3 and abs(s[i, 3]) > v_max):
+        if ((rep < 0 or px[i, 1] > px[rep, 1]) and not (age[i] >= 3 and abs(s[i, 3]) > v_max)
+                and not (age[i] < SETTLED_AGE and s[i, 3] * np.sign(v_med) < v_slow)):
             rep = i
         y_lo = min(y_lo, s[i, 1])
         y_hi = max(y_hi, s[i, 1])
@@ -991,7 +1006,8 @@ class Grouper:
             tr.trajectory.append((t, st.x, rep_y))
             if not abs(rep_y - tr.still_y) <= STILL_M:
                 tr.still_y, tr.still_t = rep_y, t
-            if not tr.reported and t - tr.still_t >= STILL_S:
+            if not tr.reported and (t - tr.still_t >= STILL_S or (
+                    sign > 0 and tr.near_row >= self.zones.height - ENTER_ROWS_K * self.edge_rows)):
                 tr.trajectory = tr.trajectory[-1:]
                 tr.start_y = rep_y
             moved = abs(rep_y - tr.start_y) >= MIN_TRAVEL_M and abs(vy) >= MIN_SPEED_MPS
@@ -1040,7 +1056,7 @@ class Grouper:
                 tr.reported = True
                 tr.report_t = st.t
                 # the earlier near-end points, so that lines crossed before this report still count
-                ahead = 0.0 if sign < 0 else tr.ground[0]
+                ahead = 0.0 if sign < 0 else tr.ground[1] - st.y_rear  # (as far ahead as the front reported)
                 st.trajectory = [(pt, px_, py + ahead) for pt, px_, py in tr.trajectory[:-1]] or None
                 st.entered = self._entered(tr, st, ahead)
             elif self.matching_host(tr.id):  # no match this frame: no evidence either way

@@ -9,7 +9,8 @@ from appliance.background import (CELL_DARK_SHARE, CELL_PX, CORE_TOL, FLAT_CORE_
                                   MIN_CELL_SHARE, MIN_CELLS, MIN_CORE_SHARE, MIN_DARK_SHARE, MIN_INNER_PX,
                                   MIN_TEXTURE, MIN_TEXTURE_NCC, NOISE, SHADOW_RATIO)
 from appliance.grouping import (APART, FAR, LATE_BESIDE_K, LATE_BESIDE_M, LATE_BESIDE_X_M, LATE_HOST_K_SPREAD,
-                                LATE_HOST_X_M, LINKED, MERGED_HI, MERGED_LO, MOVING, STANDING, UNSEEN)
+                                LATE_HOST_X_M, LINKED, MERGED_HI, MERGED_LO, MOVING, SETTLED_AGE, SLOW_REP_SHARE,
+                                STANDING, UNSEEN)
 
 
 def ncc_ref(img: np.ndarray, tmpl: np.ndarray, cx: int, cy: int) -> float:
@@ -268,7 +269,10 @@ def group_summary_ref(members, s, px, age, near_m, spot_m, moving, standing, fas
     v_max = fast * np.median(np.abs(s[body[settled], 3])) if settled.sum() >= 4 else np.inf
     if v_max < fast * fast_min:
         v_max = np.inf
-    cand = body[~(settled & (np.abs(s[body, 3]) > v_max))]
+    v_med = np.median(s[body[settled], 3]) if settled.sum() >= 2 else 0.0
+    slow = (age[body] < SETTLED_AGE) & (s[body, 3] * np.sign(v_med) < SLOW_REP_SHARE * abs(v_med)) \
+        if abs(v_med) >= moving else np.zeros(len(body), np.bool_)
+    cand = body[~(settled & (np.abs(s[body, 3]) > v_max)) & ~slow]
     rep = cand[np.argmax(px[cand, 1])] if len(cand) else body[0]
     ys = s[body, 1]
     low = body[np.abs(ys - s[rep, 1]) < near_m]

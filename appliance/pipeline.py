@@ -606,9 +606,17 @@ def _median_step_rate(states: list[VehicleState]) -> float:
 
 def _released(held: list[VehicleState]) -> VehicleState:
     """The last of a new vehicle's held states, as its first report: its trajectory runs through the earlier
-    held points, and it keeps the first report's `entered`."""
+    held points, and it keeps the first report's `entered`. A receding vehicle's points are its rear plus as
+    far as its front is now ahead of it: its length may have grown while it was held (see
+    measures._Track.edie_ahead)."""
     last = held[-1]
-    last.trajectory = list(held[0].trajectory or []) + [(h.t, h.x, h.y_front) for h in held[:-1]]
+    ahead = last.y_front - last.y_rear
+    if ahead > 0.0:
+        was = held[0].y_front - held[0].y_rear
+        last.trajectory = ([(t, x, y - was + ahead) for t, x, y in held[0].trajectory or []]
+                           + [(h.t, h.x, h.y_rear + ahead) for h in held[:-1]])
+    else:
+        last.trajectory = list(held[0].trajectory or []) + [(h.t, h.x, h.y_front) for h in held[:-1]]
     last.entered = held[0].entered
     return last
 

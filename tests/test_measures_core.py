@@ -877,3 +877,22 @@ def test_a_car_standing_on_a_loop_just_after_another_drove_off_it_is_a_second_ac
     assert [e.vehicle_id for e in events] == [1, STANDING] and tm.channels()[0].count == 2
     assert events[0].t_off == pytest.approx(2.9, abs=0.041)
     assert events[1].t_on == 4.0 and events[1].t_off == pytest.approx(20.0, abs=0.041)
+
+
+
+def test_a_receding_vehicles_front_measured_further_ahead_adds_no_edie_distance():
+    """A receding vehicle's front is its rear plus its length, which grows from 2 m to 5 m halfway through the
+    region as more of the vehicle shows (the bonnet beyond the windscreen). Edie follows its rear (plus the
+    2 m of its first report): its speed over the region is its own, 36 km/h, and not 3 m in no time faster."""
+    site = make_site(period_s=60, loops=[])
+    tm, periods = TrafficMeasures(site), []
+    for i in range(0, 651):
+        t = i * 0.1
+        rear = 15.0 + 10.0 * t
+        length = 2.0 if rear < 50.0 else 5.0
+        v = VehicleState(7, t, 2.5, rear + length, rear, 0.0, 10.0, length, 8)
+        periods += tm.step(t, EPOCH + t, [v] if rear < 95.0 else []).periods
+    p = next(p for p in periods if p.lane == 2)
+    assert p.count == 1
+    assert p.speed_kmh == pytest.approx(36.0, rel=1e-6)
+    assert p.density_vpkm * 60.0 / 1000.0 * 60.0 == pytest.approx(6.0, rel=1e-6)  # 6 s in the 60 m region

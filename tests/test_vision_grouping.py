@@ -952,3 +952,57 @@ def test_a_car_entering_beside_a_receding_car_long_in_projection_is_no_flank_of_
     beside = (np.column_stack([np.linspace(3.3, 6.6, n), np.linspace(10.0, 12.5, n)]), 10.0, 2, 0, 0.0)
     seen = _run([car, beside], lanes=lanes, joined=True)
     assert _counted(seen, receding=True) == counted, _firsts(seen)
+
+
+def test_a_corner_dragged_along_behind_a_receding_car_is_not_its_near_end():
+    """A corner on the road just uncovered behind a receding car, whose flow reads 7 m/s for its first 4 frames
+    (dragged by the car's edge) while it stands, is linked to the car before its speed settles. Moving at under half
+    the car's speed it cannot be on the car (a part of a vehicle moves at least as fast as its bumper in
+    projection): the car's near end stays on the car, never more than 0.5 m behind its rear."""
+    lanes = RECEDING_BESIDE_APPROACHING
+    car = (_box(-2.6, -0.9, 10.0, 14.0, 12, 7), 15.0, 1, 0, 0.0)
+    dragged = [(np.array([[-1.75 + 0.1 * (f % 5), 10.0 + 15.0 * f * DT - 0.3]]),
+                lambda t, born=f * DT: (0.0, 7.0 / SETTLING if t - born < 0.15 else 0.0), 1, f, 0.0)
+               for f in range(12, 33, 3)]
+    seen = _run([car, *dragged], frames=50, lanes=lanes)
+    assert len(seen) == 1, {k: len(v) for k, v in seen.items()}
+    rear_lag = [round(10.0 + 15.0 * st.t - st.y_rear, 2) for ss in seen.values() for st in ss]
+    assert max(rear_lag) < 0.5, rear_lag
+
+
+def test_a_receding_vehicle_entering_at_the_image_bottom_starts_once_its_rear_is_in_view():
+    """A receding car enters the view at the image's bottom, front first: its corners appear as they come
+    into view, its lowest visible point stays at the edge until its rear is in view. Its trajectory starts
+    no earlier than a frame before that (the point held at the edge is not where the car is: counted from
+    when its front came into view, its time in the Edie region would run 0.2 s long)."""
+    lanes = RECEDING_BESIDE_APPROACHING
+    site = parse_site(site_dict(lanes=lanes))
+    zones = SiteZones(site)
+    g = Grouper(site.tracking, zones)
+    n = site.tracking.max_features
+    s, px = np.zeros((n, 4)), np.zeros((n, 2))
+    lane, alive, age = np.zeros(n, np.int32), np.zeros(n, np.bool_), np.zeros(n, np.int32)
+    body = np.column_stack([np.linspace(-2.5, -1.0, 12), np.linspace(0.0, 4.4, 12)])  # (x, ahead of the rear)
+    last_row = zones.height - 8  # no corner is found or tracked lower (the tracker's search window)
+    born = np.full(len(body), -1)
+    rear0, speed, in_view_t, first = -4.0, 15.0, None, None
+    for f in range(60):
+        t = f * DT
+        rear = rear0 + speed * t
+        for i, (x, dy) in enumerate(body):
+            row = zones.H.road_to_img(np.array([[x, rear + dy]]))[0]
+            if row[1] < last_row and born[i] < 0:
+                born[i] = f
+                g.reset_slots(np.array([i]))
+            if born[i] >= 0:
+                s[i], px[i] = (x, rear + dy, 0.0, speed), row
+                lane[i], alive[i], age[i] = 1, True, f - born[i]
+        if in_view_t is None and alive[0]:
+            in_view_t = t
+        out, retire = g.step(t, s, px, lane, alive, age)
+        alive[retire] = False
+        first = first or next((st for st in out if st.trajectory), None)
+    assert in_view_t is not None and born.min() < born[0], "the car must enter front first"
+    assert first is not None, "the car is never reported"
+    assert first.trajectory[0][0] >= in_view_t - DT - 1e-9, (first.trajectory[0], in_view_t)
+

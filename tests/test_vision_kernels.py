@@ -333,14 +333,15 @@ def test_fit_places_falls_back_to_the_median_and_waits_for_a_late_joiner_further
 
 
 def test_group_summary_matches_reference():
-    """Random groups, some with standing features among moving ones: the same body, near end, span, velocity,
-    spot speed and place across the road as the NumPy reference."""
+    """Random groups, some with standing or slow features among moving ones: the same body, near end, span,
+    velocity, spot speed and place across the road as the NumPy reference."""
     rng = np.random.default_rng(13)
     own_spot = 0
     for trial in range(150):
         n = 40
-        s = np.column_stack([rng.uniform(-4, 4, n), rng.uniform(20, 80, n), rng.normal(0, 0.3, n),
-                             np.where(rng.random(n) < 0.2, rng.normal(0, 0.4, n), rng.normal(-15, 2, n))])
+        kind = rng.random(n)
+        vy = np.where(kind < 0.2, rng.normal(0, 0.4, n), np.where(kind < 0.3, rng.normal(-6, 2, n), rng.normal(-15, 2, n)))
+        s = np.column_stack([rng.uniform(-4, 4, n), rng.uniform(20, 80, n), rng.normal(0, 0.3, n), vy])
         px = np.column_stack([rng.uniform(0, 640, n), rng.uniform(0, 480, n)])
         age = rng.integers(0, 8, n).astype(np.int32)
         members = np.sort(rng.choice(n, int(rng.integers(1, 15)), replace=False)).astype(np.int64)

@@ -564,6 +564,28 @@ def test_hold_releases_moving_vehicles_and_drops_stuck_groups():
     assert all(v.trajectory is None for v in released[1:])
 
 
+def test_a_receding_vehicles_held_points_follow_its_rear_whatever_its_length_measured_meanwhile():
+    """A receding vehicle's front is its rear plus its length, which grows from 2 m to 5 m while its first
+    report is held (more of it shows). The points it is released with, from before its report and held, are
+    its rear plus the 5 m of its release: no step in them but its own motion (the measures follow it so)."""
+    from appliance.types import VehicleState
+
+    pipe = VisionPipeline(parse_site(site_dict(lanes=(("receding", -3.5, 0.0), ("approaching", 0.0, 3.5)))))
+    pipe.first_t = 0.0
+    out = []
+    for k in range(20):
+        t = 1.0 + 0.04 * k
+        rear = 20.0 + 20.0 * (t - 1.0)
+        length = 2.0 if k < 6 else 5.0
+        earlier = [(t - 0.08, -1.75, rear - 1.6 + length), (t - 0.04, -1.75, rear - 0.8 + length)] if k == 0 else None
+        out += pipe._hold_new([VehicleState(id=1, t=t, x=-1.75, y_front=rear + length, y_rear=rear, vx=0.0,
+                                            vy=20.0, length=length, n_features=6, trajectory=earlier)])
+    first = out[0]
+    pts = [p for p in first.trajectory if p[0] >= 1.0 - 0.1] + [(first.t, first.x, first.y_front)]
+    steps = [(b[2] - a[2]) / (b[0] - a[0]) for a, b in zip(pts, pts[1:])]
+    assert len(steps) >= 10 and steps == pytest.approx([20.0] * len(steps)), steps
+
+
 def _car_at(t: float, t0: float, first: list | None = None):
     """Vehicle 2's state at t: approaching at 20 m/s from 60 m at t0, with earlier points ``first``."""
     from appliance.types import VehicleState
