@@ -253,7 +253,8 @@ EDGE_ROWS_K = 3.0
 # visible point stays in the bottom rows, ahead of its rear. A group not yet reported whose near end lies within
 # ENTER_ROWS_K times the tracker's reach of the bottom starts its trajectory afresh (as after a standstill,
 # STILL_S): counted from when its front came into view, its time in the Edie region ran 0.2 s long, and the
-# receding lanes' speeds read 2-4 % low.
+# receding lanes' speeds read 2-4 % low. Only while its front is short of its count line: where the line lies
+# that close to the bottom (a vehicle entering over it counts where first seen), its first report must not wait.
 ENTER_ROWS_K = 2.0
 # A feature younger than SETTLED_AGE moving its group's way at under this share of the median speed of the
 # group's settled features (when that is MOVING_MPS or more) is not its near end: a corner on the road just
@@ -1007,7 +1008,8 @@ class Grouper:
             if not abs(rep_y - tr.still_y) <= STILL_M:
                 tr.still_y, tr.still_t = rep_y, t
             if not tr.reported and (t - tr.still_t >= STILL_S or (
-                    sign > 0 and tr.near_row >= self.zones.height - ENTER_ROWS_K * self.edge_rows)):
+                    sign > 0 and tr.near_row >= self.zones.height - ENTER_ROWS_K * self.edge_rows
+                    and rep_y + tr.ground[0] < lz.count_y)):
                 tr.trajectory = tr.trajectory[-1:]
                 tr.start_y = rep_y
             moved = abs(rep_y - tr.start_y) >= MIN_TRAVEL_M and abs(vy) >= MIN_SPEED_MPS
