@@ -628,14 +628,18 @@ def group_summary(members, s, px, age, near_m, spot_m, moving, standing, fast, f
         v_max = np.inf
     v_med = _median_of(s[settled, 3]) if settled.shape[0] >= 2 else 0.0
     v_slow = SLOW_REP_SHARE * abs(v_med) if abs(v_med) >= moving else -np.inf
-    rep = -1
+    rep = rep_any = -1  # ... and the lowest not too fast, should every one be too fast or too slow
     y_lo = y_hi = s[body[0], 1]
     for i in body:
-        if ((rep < 0 or px[i, 1] > px[rep, 1]) and not (age[i] >= 3 and abs(s[i, 3]) > v_max)
-                and not (age[i] < SETTLED_AGE and s[i, 3] * np.sign(v_med) < v_slow)):
-            rep = i
+        if not (age[i] >= 3 and abs(s[i, 3]) > v_max):
+            if rep_any < 0 or px[i, 1] > px[rep_any, 1]:
+                rep_any = i
+            if (rep < 0 or px[i, 1] > px[rep, 1]) and not (age[i] < SETTLED_AGE and s[i, 3] * np.sign(v_med) < v_slow):
+                rep = i
         y_lo = min(y_lo, s[i, 1])
         y_hi = max(y_hi, s[i, 1])
+    if rep < 0:
+        rep = rep_any
     low = np.empty(body.shape[0], np.int64)
     near = np.empty(body.shape[0], np.int64)
     spot = np.empty(body.shape[0], np.int64)

@@ -340,7 +340,8 @@ def test_group_summary_matches_reference():
     for trial in range(150):
         n = 40
         kind = rng.random(n)
-        vy = np.where(kind < 0.2, rng.normal(0, 0.4, n), np.where(kind < 0.3, rng.normal(-6, 2, n), rng.normal(-15, 2, n)))
+        vy = np.where(kind < 0.2, rng.normal(0, 0.4, n),
+                      np.where(kind < 0.3, rng.normal(-6, 2, n), rng.normal(-15, 2, n)))
         s = np.column_stack([rng.uniform(-4, 4, n), rng.uniform(20, 80, n), rng.normal(0, 0.3, n), vy])
         px = np.column_stack([rng.uniform(0, 640, n), rng.uniform(0, 480, n)])
         age = rng.integers(0, 8, n).astype(np.int32)
@@ -352,6 +353,19 @@ def test_group_summary_matches_reference():
         own_spot += got[5] != got[4]
     assert own_spot >= 5  # the spot speed comes from its own band of features, not only the velocity's
 
+
+def test_a_group_whose_every_corner_is_too_fast_or_too_slow_still_has_a_near_end():
+    """Four corners 3 frames old, two at 2 m/s and two at 30 m/s: those at 30 are over 1.08 times their median
+    (16 m/s), those at 2 under half of it. The near end is then the lowest not too fast, as before the slow
+    rule, in the kernel and in the reference."""
+    s = np.zeros((4, 4))
+    s[:, 1] = [60.0, 61.0, 62.0, 63.0]
+    s[:, 3] = [-2.0, -2.0, -30.0, -30.0]
+    px = np.column_stack([np.full(4, 300.0), 200.0 - 2.0 * s[:, 1]])
+    age = np.full(4, 3, np.int32)
+    members = np.arange(4, dtype=np.int64)
+    for f in (group_summary, ref.group_summary_ref):
+        assert f(members, s, px, age, 3.0, 1.0, 4.0, 1.0, 1.08, 10.0)[1] == 0, f.__name__
 
 @pytest.mark.parametrize("speed, expect_near", [(18.0, 4), (6.0, 5)])
 def test_near_end_is_no_faster_feature_below_the_vehicle(speed: float, expect_near: int):
