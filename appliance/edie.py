@@ -1,7 +1,8 @@
 """Edie's generalised flow, density and space-mean speed over a lane region x a period."""
 
-# For region A = [y0, y1] x [period]: d(A) total distance and t(A) total time of all vehicle FRONT
-# points inside A; q = d/|A|, k = t/|A|, v = d/t (reported in veh/h, veh/km, km/h).
+# For region A = [y0, y1] x [period]: d(A) total distance and t(A) total time of one point fixed on each
+# vehicle inside A (an approaching vehicle's front; a receding one's front as first reported, carried on with
+# its rear: see measures._Track.edie_ahead); q = d/|A|, k = t/|A|, v = d/t (reported in veh/h, veh/km, km/h).
 
 from __future__ import annotations
 
