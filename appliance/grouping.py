@@ -628,7 +628,7 @@ def group_summary(members, s, px, age, near_m, spot_m, moving, standing, fast, f
         v_max = np.inf
     v_med = _median_of(s[settled, 3]) if settled.shape[0] >= 2 else 0.0
     v_slow = SLOW_REP_SHARE * abs(v_med) if abs(v_med) >= moving else -np.inf
-    rep = rep_any = -1  # ... and the lowest not too fast, should every one be too fast or too slow
+    rep = rep_any = -1  # rep_any: the lowest not too fast, for a group whose every one is too fast or too slow
     y_lo = y_hi = s[body[0], 1]
     for i in body:
         if not (age[i] >= 3 and abs(s[i, 3]) > v_max):

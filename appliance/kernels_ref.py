@@ -272,8 +272,9 @@ def group_summary_ref(members, s, px, age, near_m, spot_m, moving, standing, fas
     v_med = np.median(s[body[settled], 3]) if settled.sum() >= 2 else 0.0
     slow = (age[body] < SETTLED_AGE) & (s[body, 3] * np.sign(v_med) < SLOW_REP_SHARE * abs(v_med)) \
         if abs(v_med) >= moving else np.zeros(len(body), np.bool_)
-    fast_ = settled & (np.abs(s[body, 3]) > v_max)
-    cand = body[~fast_ & ~slow] if (~fast_ & ~slow).any() else body[~fast_]
+    not_fast = ~(settled & (np.abs(s[body, 3]) > v_max))
+    ok = not_fast & ~slow
+    cand = body[ok] if ok.any() else body[not_fast]
     rep = cand[np.argmax(px[cand, 1])] if len(cand) else body[0]
     ys = s[body, 1]
     low = body[np.abs(ys - s[rep, 1]) < near_m]

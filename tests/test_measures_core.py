@@ -879,7 +879,6 @@ def test_a_car_standing_on_a_loop_just_after_another_drove_off_it_is_a_second_ac
     assert events[1].t_on == 4.0 and events[1].t_off == pytest.approx(20.0, abs=0.041)
 
 
-
 def test_a_receding_vehicles_front_measured_further_ahead_adds_no_edie_distance():
     """A receding vehicle's front is its rear plus its length, which grows from 2 m to 5 m halfway through the
     region as more of the vehicle shows (the bonnet beyond the windscreen). Edie follows its rear (plus the

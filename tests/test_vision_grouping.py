@@ -1005,4 +1005,3 @@ def test_a_receding_vehicle_entering_at_the_image_bottom_starts_once_its_rear_is
     assert in_view_t is not None and born.min() < born[0], "the car must enter front first"
     assert first is not None, "the car is never reported"
     assert first.trajectory[0][0] >= in_view_t - DT - 1e-9, (first.trajectory[0], in_view_t)
-

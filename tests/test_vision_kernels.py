@@ -367,6 +367,7 @@ def test_a_group_whose_every_corner_is_too_fast_or_too_slow_still_has_a_near_end
     for f in (group_summary, ref.group_summary_ref):
         assert f(members, s, px, age, 3.0, 1.0, 4.0, 1.0, 1.08, 10.0)[1] == 0, f.__name__
 
+
 @pytest.mark.parametrize("speed, expect_near", [(18.0, 4), (6.0, 5)])
 def test_near_end_is_no_faster_feature_below_the_vehicle(speed: float, expect_near: int):
     """A car's settled features move at one speed; a feature lower in the image moving 15 % faster (the top of
