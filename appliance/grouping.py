@@ -167,6 +167,10 @@ ADOPT_TRAVEL_M = 5.0
 ADOPT_POINTS = 10
 ADOPT_EVERY = 5
 ADOPT_JOINED_SHARE = 0.95  # of the image between the two differing from the road (a follower's gap shows)
+# A part placed further back than a van is long is only a long vehicle's if it is as high as a truck's or bus's body:
+# a follower's bonnet or roof (1-1.6 m up) keeping its distance moves just like a part of the vehicle ahead there
+ADOPT_FAR_M = 6.0
+ADOPT_FAR_MIN_HEIGHT_M = 2.0
 # A group found off the lanes (see Grouper.lifted) is adopted only as a top at least this high: a truck's, bus's or
 # artic's box (3-4.5 m), above any car's or van's roof. Off the lanes a follower's roof is seen as well, right
 # over a tall vehicle ahead that hides the road between the two; taken for that vehicle's top it made the
@@ -1217,6 +1221,8 @@ class Grouper:
                         or res > ADOPT_RES_SHARE * abs(q[a]) or (best is not None and res >= best[0]):
                     continue
                 place = c / k * np.sign(d[i])
+                if place > ADOPT_FAR_M and self.foot[2] * (1.0 - 1.0 / k) < ADOPT_FAR_MIN_HEIGHT_M:
+                    continue
                 gx = fx + (x[a] - fx) / k
                 x_lo, x_hi = h.elevated_x()
                 if -1.0 <= place <= max(h.own_length, ELEVATED_LENGTH_M) + 1.0 \

@@ -863,20 +863,22 @@ def _lengths(seen: dict[int, list]) -> dict[int, float]:
     return {vid: max(st.length for st in ss) for vid, ss in seen.items()}
 
 
-def test_a_buses_lone_roof_corners_give_its_length_but_a_followers_low_corner_does_not():
+@pytest.mark.parametrize("follower_corner_m", [0.0, 1.8])
+def test_a_buses_lone_roof_corners_give_its_length_but_a_followers_corner_does_not(follower_corner_m):
     """A 12 m bus shows a group of corners low on its front and, far behind them in projection, a few lone corners
     along its roof's edge (3 m up), too far from each other to link. Each keeps 1.27 times the front's distance
     from the camera's foot plus a constant, and lies on the bus with that height undone: the bus is reported
-    about 12 m long, and no corner of its roof is a vehicle. A lone corner low on a car following 8 m behind
-    at the same speed (one the tracker kept of it) moves like a part only at k 1, no part high on a vehicle:
-    the car ahead stays a car's length."""
+    about 12 m long, and no corner of its roof is a vehicle. A lone corner of a car following 8 m behind at the
+    same speed (one the tracker kept of it) does not make the car ahead longer: low on it, it moves like a part
+    only at k 1, no part high on a vehicle; on its roof (a van's, 1.8 m up: k 1.22) it moves like a part 12.5 m
+    back, but lower than a truck's or a bus's body, the only ones reaching that far."""
     front = (_box(0.8, 2.6, 38.0, 38.4, 10, 71), -16.0, 2, 0, 0.5)
     roof = [(np.array([[1.7, 38.0 + place]]), -16.0, 2, 0, 3.0) for place in (4.0, 8.0, 11.5)]
     seen = _run([front, *roof], frames=40, joined=True)
     assert len(seen) == 1, _firsts(seen)
     assert 10.0 <= next(iter(_lengths(seen).values())) <= 13.0, _lengths(seen)
     car = (_box(0.8, 2.6, 38.0, 38.4, 10, 72), -16.0, 2, 0, 0.5)
-    follower = (np.array([[1.7, 38.0 + 4.5 + 8.0]]), -16.0, 2, 0, 0.0)
+    follower = (np.array([[1.7, 38.0 + 4.5 + 8.0]]), -16.0, 2, 0, follower_corner_m)
     seen = _run([car, follower], frames=40, joined=True)
     assert max(_lengths(seen).values()) < 6.0, _lengths(seen)
 
