@@ -103,6 +103,11 @@ class _Family:
     until: float  # wall time its segments cover up to
 
 
+def _on_body(lo: float, held: list[tuple[float, float]]) -> bool:
+    """Whether a footprint starting at lo starts on one of the held (footprint start, length): see SAME_BODY_M."""
+    return any(-SAME_BODY_M[0] <= lo - y <= min(n, SAME_BODY_M[1]) for y, n in held)
+
+
 def min_headway(speed_mps: float) -> float:
     """The shortest front-to-front time in which a vehicle can follow another at this speed."""
     return min(max(MIN_SPACING_M / max(speed_mps, 1e-3) + MIN_TIME_GAP_S, MIN_HEADWAY_S), MAX_HEADWAY_S)
@@ -217,11 +222,13 @@ class TrafficMeasures:
         raws = self.lanes.lanes_at(np.array([s.x for s in flat]), np.array([s.y_front for s in flat]))
         segs: list[tuple | None] = []
         held: dict[int, list[tuple]] = {}  # per lane, (footprint start, length) of the vehicles whose step counted
+        off_loops = self._on_bodies(todo, raws)
         k = 0
         for v, ss in todo:
             seen.add(v.id)
             if v.joined is not None:
                 self._join(v, out)
+                k += len(ss)  # its states' lanes in raws come before the next vehicle's
                 continue
             # a new vehicle's points before its report (held, and the stretch back to its region's entry) are in
             # the lane its report ends in: far away, where it was first seen, its place across the road is least
@@ -230,13 +237,12 @@ class TrafficMeasures:
             for s in ss:
                 raw = end or int(raws[k]) or None
                 k += 1
-                seg = self._advance(s, raw, offset, out)
+                seg = self._advance(s, raw, offset, out, s is ss[-1] and v.id in off_loops)
                 if seg is None:
                     continue
                 if s is ss[-1]:  # its step in this frame (a new vehicle's earlier points are not compared)
                     lo = min(s.y_front, s.y_rear)
-                    if len(ss) == 1 and any(-SAME_BODY_M[0] <= lo - y <= min(n, SAME_BODY_M[1])
-                                            for y, n in held.get(seg[0], ())):
+                    if len(ss) == 1 and _on_body(lo, held.get(seg[0], ())):
                         continue  # on a bigger group's vehicle (its roof, or a fragment): its time counts once
                     held.setdefault(seg[0], []).append((lo, abs(s.y_front - s.y_rear)))
                 segs.append((v.id, s.x, self._edie_segment(self.tracks[v.id], seg)))
@@ -267,9 +273,34 @@ class TrafficMeasures:
             out.periods.extend(self._complete(p, partial=p in self.partial_periods))
         return out
 
-    def _advance(self, v: VehicleState, raw: int | None, offset: float, out: MeasureUpdate):
+    def _on_bodies(self, todo: list[tuple[VehicleState, list[VehicleState]]], raws: np.ndarray) -> set[int]:
+        """The vehicles whose footprint now starts on another's in their lane, that one's near end nearer the
+        camera: a roof or a rear part of it tracked apart (a real follower keeps a gap behind the vehicle's
+        length). The loops see the vehicle by the nearer one's footprint alone: the part's, reaching its own
+        length further back, would hold them on after the vehicle left."""
+        by_lane: dict[int, list[tuple[float, float, int]]] = {}
+        k = 0
+        for v, ss in todo:
+            k += len(ss)
+            raw = int(raws[k - 1])
+            if v.joined is None and raw:
+                s = ss[-1]
+                by_lane.setdefault(raw, []).append((min(s.y_front, s.y_rear), abs(s.y_front - s.y_rear), v.id))
+        out: set[int] = set()
+        for steps in by_lane.values():
+            if len(steps) < 2:
+                continue
+            kept: list[tuple[float, float]] = []
+            for lo, n, vid in sorted(steps):
+                if _on_body(lo, kept):
+                    out.add(vid)
+                else:
+                    kept.append((lo, n))
+        return out
+
+    def _advance(self, v: VehicleState, raw: int | None, offset: float, out: MeasureUpdate, off_loops: bool = False):
         """Move one vehicle to state v (in lane ``raw`` by position); returns its Edie segment
-        (lane, w0, w1, y0, y1) or None."""
+        (lane, w0, w1, y0, y1) or None. off_loops: it is a part of another vehicle now (see _on_bodies)."""
         tr = self.tracks.get(v.id)
         speed, spot = abs(v.vy), _spot_speed(v)
         if tr is None:
@@ -293,7 +324,7 @@ class TrafficMeasures:
         for lp in self.loops:
             if lp.cfg.lane != raw and v.id not in lp.active:
                 continue  # neither in this loop's lane nor on it
-            out.loop_events += lp.update(v.id, raw == lp.cfg.lane, pl, cur, offset,
+            out.loop_events += lp.update(v.id, raw == lp.cfg.lane and not off_loops, pl, cur, offset,
                                          was_in_lane=tr.lane_raw == lp.cfg.lane)
         tr.prev = (v.t, v.x, v.y_front, v.y_rear, spot)
         tr.lane_raw = raw

@@ -187,6 +187,18 @@ def test_a_fragment_just_behind_a_vehicle_is_the_same_actuation(gap_s, actuation
         assert all(calls[26:int((t_rear_on + 0.38) * 25)])  # the call held through the dropout
 
 
+@pytest.mark.parametrize("behind_m, t_offs", [(4.0, [1.63]), (9.0, [1.63, 2.53])])
+def test_a_part_tracked_apart_on_a_vehicle_does_not_hold_the_loop_after_it(behind_m, t_offs):
+    """A car's roof tracked as a group of its own, its near end 4 m behind the car's front, reported a car's length
+    too: a real loop sees the car leave at its rear (1.63 s), not the part's footprint reaching 4 m further back
+    (2.03 s). A follower 9 m behind (a 4.5 m gap) is a vehicle of its own: its own actuation."""
+    site = make_site(loops=[{"id": "L1", "lane": 1, "channel": 1, "y_m": 30.0, "length_m": 1.8}])
+    tm = TrafficMeasures(site)
+    calls, events = _drive(tm, 4.0, [(1, 41.8, 4.5, 0.0, 4.0), (2, 41.8 + behind_m, 4.5, 0.0, 4.0)])
+    assert [e.t_off for e in events] == pytest.approx(t_offs, abs=0.041)
+    assert events[0].t_on == pytest.approx(1.0, abs=0.041)
+
+
 def test_a_length_that_shrinks_and_grows_back_is_one_actuation():
     """The group's rear edge jumps forward off the loop and back over it (a rear part lost, then found again)."""
     site = make_site(loops=[{"id": "L1", "lane": 1, "channel": 1, "y_m": 30.0, "length_m": 1.8}])
@@ -895,3 +907,24 @@ def test_a_receding_vehicles_front_measured_further_ahead_adds_no_edie_distance(
     assert p.count == 1
     assert p.speed_kmh == pytest.approx(36.0, rel=1e-6)
     assert p.density_vpkm * 60.0 / 1000.0 * 60.0 == pytest.approx(6.0, rel=1e-6)  # 6 s in the 60 m region
+
+
+def test_a_group_joining_another_does_not_shift_the_lanes_of_the_vehicles_after_it():
+    """A big group ending as a part of a vehicle in lane 1 (its last state says whom it joined) in the frame where a
+    smaller vehicle in lane 2 crosses its count line: the measures take the vehicles biggest first, and the
+    receding one's place in lane 2 is its own, not the joined group's (which made it cross lane 1's line, where
+    it was not)."""
+    tm = TrafficMeasures(make_site(loops=[]))
+    t_join = 2.0  # the receding car's front reaches lane 2's count line (40 m) then
+
+    def states(t: float, y: float) -> list[VehicleState]:
+        vs = [VehicleState(1, t, -2.5, y, y + 4.5, 0, -20, 4.5, 8)]
+        if t <= t_join:
+            vs.append(VehicleState(2, t, -2.4, y + 6.0, y + 8.0, 0, -24, 2.0, 20, finished=t >= t_join,
+                                   joined=1 if t >= t_join else None))
+        yf = 40.0 + 15.0 * (t - t_join)
+        vs.append(VehicleState(3, t, 2.5, yf, yf - 4.5, 0, 15, 4.5, 5))
+        return vs
+
+    crossings = [c for _, upd in drive(tm, states) for c in upd.crossings]
+    assert [(c.vehicle_id, c.lane) for c in crossings if c.vehicle_id == 3] == [(3, 2)]
