@@ -168,7 +168,8 @@ ADOPT_POINTS = 10
 ADOPT_EVERY = 5
 ADOPT_JOINED_SHARE = 0.95  # of the image between the two differing from the road (a follower's gap shows)
 # A part placed further back than a van is long is only a long vehicle's if it is as high as a truck's or bus's body:
-# a follower's bonnet or roof (1-1.6 m up) keeping its distance moves just like a part of the vehicle ahead there
+# a follower's bonnet or roof (a car's 1-1.6 m up, a van's nearly 2 m) keeping its distance moves just like a part
+# of the vehicle ahead there, whose roof hides the road between the two from the image test
 ADOPT_FAR_M = 6.0
 ADOPT_FAR_MIN_HEIGHT_M = 2.0
 # A group found off the lanes (see Grouper.lifted) is adopted only as a top at least this high: a truck's, bus's or
