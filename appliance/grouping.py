@@ -819,6 +819,7 @@ class Grouper:
         self.edge_rows = EDGE_ROWS_K * (params.search_radius_px + params.template_px // 2)
         self.k_max = zones.k_max
         self.k_top = zones.magnification(LIFTED_TOP_M) or self.k_max  # see LIFTED_TOP_M
+        self.k_far = zones.magnification(ADOPT_FAR_MIN_HEIGHT_M) or np.inf  # see ADOPT_FAR_M
 
     @property
     def min_report(self) -> int:
@@ -1222,7 +1223,7 @@ class Grouper:
                         or res > ADOPT_RES_SHARE * abs(q[a]) or (best is not None and res >= best[0]):
                     continue
                 place = c / k * np.sign(d[i])
-                if place > ADOPT_FAR_M and self.foot[2] * (1.0 - 1.0 / k) < ADOPT_FAR_MIN_HEIGHT_M:
+                if place > ADOPT_FAR_M and k < self.k_far:
                     continue
                 gx = fx + (x[a] - fx) / k
                 x_lo, x_hi = h.elevated_x()

@@ -222,7 +222,7 @@ class TrafficMeasures:
         raws = self.lanes.lanes_at(np.array([s.x for s in flat]), np.array([s.y_front for s in flat]))
         segs: list[tuple | None] = []
         held: dict[int, list[tuple]] = {}  # per lane, (footprint start, length) of the vehicles whose step counted
-        off_loops = self._on_bodies(todo, raws)
+        off_loops = self._on_bodies(todo, raws) if self.loops else set()
         k = 0
         for v, ss in todo:
             seen.add(v.id)
