@@ -45,6 +45,9 @@ def test_truth_trajectories_reproduce_truth_aggregates(scene, tmp_path):
         assert max(abs(e) for e in cmp.errors[name]) < 1.0, name
     assert max(abs(e) for e in cmp.occupancy_pp) < 0.1
     assert sum(r for _, r in cmp.loop_counts.values()) == sum(t for t, _ in cmp.loop_counts.values())
+    # each counted vehicle in its length class (the truth's lengths are exact)
+    assert sum(t for t, _ in cmp.class_counts.values()) == sum(t for t, _ in cmp.lane_counts.values())
+    assert all(r == t for t, r in cmp.class_counts.values()), cmp.class_counts
 
 
 def test_replay_and_evaluate_rendered_scene(scene, tmp_path):

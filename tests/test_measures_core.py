@@ -672,9 +672,11 @@ def test_a_segment_in_a_period_already_taken_is_not_added():
     assert acc.peek(60.0)[:, 0] == pytest.approx([40.0, 10.0])
 
 
-def test_period_length_classes_use_the_length_over_the_whole_passage():
-    """A vehicle's length is still being measured when its front crosses the count line (few frames fitted):
-    the period's length classes take the length over its whole passage, as its vehicle record does."""
+def test_period_length_classes_use_the_length_the_vehicle_ended_with():
+    """A vehicle's length is still being measured when its front crosses the count line (few frames fitted),
+    and a long vehicle's far end is found last: the period's length classes take the length it ended with,
+    as its vehicle record does (a car measured as a motorcycle at the line; a truck measured as a car over most
+    of its passage)."""
     lanes = [{"id": 1, "direction": "approaching", "polygon_m": [[-5, 0], [5, 0], [5, 100], [-5, 100]],
               "region_y_m": [20.0, 80.0], "count_y_m": 70.0}]
     site = make_site(period_s=60, loops=[], lanes=lanes)
@@ -690,16 +692,21 @@ def test_period_length_classes_use_the_length_over_the_whole_passage():
                 continue
             yf = 100.0 - speed * age / fps
             length = 1.5 if yf > 65.0 else 4.5  # a motorcycle's length at the line, a car's from then on
+            if j % 2 and age >= life - 5:
+                length = 9.0  # every other one a truck, its far end found in its last frames
             vs.append(VehicleState(j + 1, t, 0.0, yf, yf + length, 0.0, -speed, length, 5, finished=age == life - 1))
         upd = tm.step(t, EPOCH + t, vs)
         periods += upd.periods
         records += upd.vehicles
         crossings += [c.length_m for c in upd.crossings]  # as sent out (and stored) at the line
     assert len(crossings) == n and all(length == pytest.approx(1.5) for length in crossings)
-    assert len(records) == n and all(r.length_class == "small" for r in records)
+    assert len(records) == n
+    assert [r.length_class for r in sorted(records, key=lambda r: r.id)] == ["small", "medium"] * (n // 2)
     counted = [p for p in periods if p.lane == 1 and p.count]
     assert sum(p.count for p in counted) == n
-    assert all(p.class_counts == {"small": p.count} for p in counted)
+    classes = [j % 2 for j in range(n)]  # 1: a truck
+    assert sum(p.class_counts.get("medium", 0) for p in counted) == sum(classes)
+    assert sum(p.class_counts.get("small", 0) for p in counted) == n - sum(classes)
 
 
 def test_spot_speeds_are_the_lowest_features_and_edie_the_positions():

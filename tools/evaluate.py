@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 import click
 import numpy as np
 
+from appliance.config import MeasuresConfig
 from tools.loop_classes import MATCH_S, format_loop_classes, scene_loop_classes
 
 if TYPE_CHECKING:
@@ -128,6 +129,7 @@ class TruthComparison:
     errors: dict[str, list[float]] = field(default_factory=dict)  # flow/density/speed % errors
     occupancy_pp: list[float] = field(default_factory=list)
     loop_counts: dict[int, tuple[int, int]] = field(default_factory=dict)  # channel -> (truth, result)
+    class_counts: dict[str, tuple[int, int]] = field(default_factory=dict)  # length class -> (truth, result)
 
     def count_error_pct(self, lane: int) -> float:
         t, r = self.lane_counts[lane]
@@ -161,6 +163,11 @@ def compare_with_truth(truth: dict, results: dict, include_partial: bool = True)
         cmp.lane_counts[lane] = (tc + int(t["count"]), rc + int(r["count"]))
         for name, e in period_errors(t, r).items():
             (cmp.occupancy_pp if name == "occupancy" else cmp.errors[name]).append(e)
+        for slot, row in enumerate((t, r)):
+            for name, n in (row.get("class_counts") or {}).items():
+                c = list(cmp.class_counts.get(name, (0, 0)))
+                c[slot] += int(n)
+                cmp.class_counts[name] = (c[0], c[1])
     for ev, slot in ((truth.get("loop_events", []), 0), (results.get("loop_events", []), 1)):
         for e in ev:
             ch = int(e["channel"])
@@ -168,6 +175,13 @@ def compare_with_truth(truth: dict, results: dict, include_partial: bool = True)
             c[slot] += 1
             cmp.loop_counts[ch] = tuple(c)
     return cmp
+
+
+def format_class_counts(counts: dict[str, tuple[int, int]]) -> str:
+    """Length classes' (truth, result) counts, the default classes in their order first."""
+    order = {name: i for i, name in enumerate(MeasuresConfig().length_class_names)}
+    return ", ".join(f"{name} {t}/{r}" for name, (t, r) in sorted(counts.items(), key=lambda kv: (
+        order.get(kv[0], len(order)), kv[0])))
 
 
 def format_truth_report(cmp: TruthComparison) -> str:
@@ -188,6 +202,8 @@ def format_truth_report(cmp: TruthComparison) -> str:
     if cmp.occupancy_pp:
         o = np.abs(cmp.occupancy_pp)
         lines.append(f"\nLoop occupancy error: mean |{o.mean():.2f}| pp, max {o.max():.2f} pp over {len(o)} lane-periods")
+    if cmp.class_counts:
+        lines.append(f"Length classes of the counted vehicles (truth/result): {format_class_counts(cmp.class_counts)}")
     if cmp.loop_counts:
         lines.append("Loop actuations per channel (truth/result): "
                      + ", ".join(f"{ch}: {t}/{r}" for ch, (t, r) in sorted(cmp.loop_counts.items())))

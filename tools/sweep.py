@@ -20,7 +20,7 @@ import numpy as np
 from tools.edie_parts import format_total, total_parts
 from tools.evaluate import (EXTRA_CAUSES, MISSED_CAUSES, TABLE1_BANDS, EvaluateError, TruthComparison, cause_counts,
                             compare_crossings_with_truth, compare_with_truth, edie_parts_of, format_causes,
-                            load_results, load_truth, period_errors, table1)
+                            format_class_counts, load_results, load_truth, period_errors, table1)
 from tools.loop_classes import format_loop_classes, merge, scene_loop_classes, to_json
 from tools.simulate.presets import PRESETS
 
@@ -176,6 +176,7 @@ def sweep(presets: str, seeds: str, seconds: float, work: Path, size: str, tag: 
     parts: dict[str, dict] = {}
     lanes = []  # every scene's lanes, for the Edie parts' sums
     loops = []  # every scene's loop actuations by class
+    classes: dict[str, tuple[int, int]] = {}  # length class -> (truth, result) counts over the whole scenes
     # how many scenes each encoder wrote: the same scene encoded by OpenCV's mp4v instead of ffmpeg's H.264
     # replays differently, so sweeps compare only on footage from one encoder
     encoders: dict[str, int] = {}
@@ -187,6 +188,9 @@ def sweep(presets: str, seeds: str, seconds: float, work: Path, size: str, tag: 
         whole = compare_with_truth(truth, results, include_partial=True)
         periods = compare_with_truth(truth, results, include_partial=partial)
         rows += _lane_rows(sc.name, whole, periods)
+        for name, (t, r) in whole.class_counts.items():
+            ct, cr = classes.get(name, (0, 0))
+            classes[name] = (ct + t, cr + r)
         enc = truth["meta"].get("encoder", "unknown")
         encoders[enc] = encoders.get(enc, 0) + 1
         if results["crossings"]:
@@ -201,6 +205,8 @@ def sweep(presets: str, seeds: str, seconds: float, work: Path, size: str, tag: 
     summary = summarise(rows)
     click.echo(format_sweep(rows, summary, complete_only=not partial))
     click.echo("Scenes encoded with: " + "; ".join(f"{e} ({n})" for e, n in encoders.items()))
+    if classes:
+        click.echo(f"Length classes of the counted vehicles (whole scenes), truth/result: {format_class_counts(classes)}")
     total = {kind: {k: sum(c[kind][k] for c in causes.values()) for k in names}
              for kind, names in (("extra", EXTRA_CAUSES), ("missed", MISSED_CAUSES))}
     if causes:
@@ -220,5 +226,6 @@ def sweep(presets: str, seeds: str, seconds: float, work: Path, size: str, tag: 
     if json_out:
         json_out.write_text(json.dumps({"tag": tag, "scenes": rows, "summary": summary, "causes": causes,
                                         "causes_total": total, "edie_parts": parts, "edie_parts_total": parts_total,
-                                        "loop_classes": to_json(loop_total), "encoders": encoders},
+                                        "loop_classes": to_json(loop_total), "encoders": encoders,
+                                        "class_counts": classes},
                                        indent=1, default=lambda o: str(o)))
