@@ -553,13 +553,14 @@ class TrafficMeasures:
 
     def _record(self, vid: int, tr: _Track, dur: float) -> VehicleRecord:
         """The per-vehicle record of an ended vehicle seen for ``dur`` seconds; also sets its crossings' length
-        to the length it ended with."""
+        to the length it ended with, or its median length over its passage where that is longer."""
         # A vehicle's length is measured as it passes: at its count line it may still be a nominal one (few
         # features fitted), and a long vehicle's far end is found last (its cab is seen first, its top's corners
-        # are adopted late). The period's length classes and the record take the last: on the synthetic scenes
-        # trucks, buses and artics were classed right 2-5 times as often as by the median over the passage,
-        # cars and vans a point or two less often (tools/evaluate's length classes).
-        length = float(tr.lengths[-1])
+        # are adopted late). Its end may also read short (leaving the image at its edge, few features left): the
+        # median over the passage then. On five synthetic scenes this put 192 vehicles in the medium class and 56
+        # in the large one against the truth's 192 and 65 (the median alone: 119 and 9; the last alone: 171 and
+        # 55, with 45 motorcycles against the truth's 18).
+        length = max(float(tr.lengths[-1]), float(np.median(tr.lengths)))
         for c in tr.crossed:
             c.length_m = length
         speed = float(np.median(tr.spot_speeds)) * 3.6

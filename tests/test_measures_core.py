@@ -676,7 +676,8 @@ def test_period_length_classes_use_the_length_the_vehicle_ended_with():
     """A vehicle's length is still being measured when its front crosses the count line (few frames fitted),
     and a long vehicle's far end is found last: the period's length classes take the length it ended with,
     as its vehicle record does (a car measured as a motorcycle at the line; a truck measured as a car over most
-    of its passage)."""
+    of its passage), or its median length over the passage where that is longer (a car measured short as it
+    leaves the image)."""
     lanes = [{"id": 1, "direction": "approaching", "polygon_m": [[-5, 0], [5, 0], [5, 100], [-5, 100]],
               "region_y_m": [20.0, 80.0], "count_y_m": 70.0}]
     site = make_site(period_s=60, loops=[], lanes=lanes)
@@ -694,6 +695,8 @@ def test_period_length_classes_use_the_length_the_vehicle_ended_with():
             length = 1.5 if yf > 65.0 else 4.5  # a motorcycle's length at the line, a car's from then on
             if j % 2 and age >= life - 5:
                 length = 9.0  # every other one a truck, its far end found in its last frames
+            elif j % 4 == 2 and age >= life - 5:
+                length = 1.0  # a car measured short as it leaves
             vs.append(VehicleState(j + 1, t, 0.0, yf, yf + length, 0.0, -speed, length, 5, finished=age == life - 1))
         upd = tm.step(t, EPOCH + t, vs)
         periods += upd.periods
