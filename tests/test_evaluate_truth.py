@@ -191,6 +191,28 @@ def test_a_late_crossing_matches_within_a_wider_window(scene, tmp_path):
     assert r.returncode == 2 and "--window is for --truth" in r.stderr
 
 
+def test_the_matched_vehicles_records_are_checked_for_their_length_class(scene, tmp_path):
+    """The perfect tracker's vehicle records carry the truth's lengths: every matched vehicle is in its
+    length class. One record measured a car's nominal length instead of its own (a van's 5.5 m or more, a
+    truck's) counts as wrong, in its truth class."""
+    from tools.evaluate import compare_crossings_with_truth, record_classes_right
+
+    site = load_site(scene.site)
+    out = tmp_path / "perfect.csv"
+    write_results(replay_truth_tracks(scene.truth_dir, site), str(out), vehicles=True)
+    truth, res = load_truth(scene.truth_dir), load_results(out)
+    cmp = compare_crossings_with_truth(truth, res["crossings"])
+    right = record_classes_right(cmp, res["vehicles"])
+    assert sum(n for n, _ in right.values()) == len(cmp.matches) >= 5
+    assert all(k == n for n, k in right.values()), right
+    long = next(h for h, r in cmp.matches if float(h["length_m"]) > 6.5)
+    rid = int(next(r for h, r in cmp.matches if h is long)["vehicle_id"])
+    shortened = [dict(v, length_m=4.5) if int(v["id"]) == rid else v for v in res["vehicles"]]
+    after = record_classes_right(cmp, shortened)
+    n, k = after[long["class"]]
+    assert (n, k) == (right[long["class"]][0], right[long["class"]][1] - 1)
+
+
 def test_spot_speeds_at_the_count_line_are_compared_with_the_truths(scene, tmp_path):
     """The perfect tracker's spot speeds are the truth's; read 5 % fast, every one is 5 % off."""
     from tools.evaluate import compare_crossings_with_truth, format_spot_speeds, spot_speed_errors

@@ -13,6 +13,7 @@ import click
 import numpy as np
 
 from appliance.config import MeasuresConfig
+from appliance.loops import length_class
 from tools.loop_classes import MATCH_S, format_loop_classes, scene_loop_classes
 
 if TYPE_CHECKING:
@@ -261,20 +262,21 @@ def compare_with_counts(counts: dict, crossings: list[dict], tolerance_frames: i
 def truth_crossings(vehicles_path: str | Path, lines: dict[int, float]) -> list[dict]:
     """The simulator's crossings of each lane's count line (lane -> Y in metres): when a vehicle's front
     passes it while in that lane, with its class, visible share and speed then."""
-    tracks: dict[str, list[tuple[float, int, float, str, float, float]]] = {}
+    tracks: dict[str, list[tuple[float, int, float, str, float, float, float]]] = {}
     with open(vehicles_path, newline="") as f:
         for r in csv.DictReader(f):
             tracks.setdefault(r["vehicle_id"], []).append(
                 (float(r["t"]), int(r["lane"]), float(r["y_front_m"]), r["class"], float(r["visible_frac"]),
-                 float(r["speed_mps"])))
+                 float(r["speed_mps"]), float(r["length_m"])))
     out = []
     for vid, rows in tracks.items():
         rows.sort()
-        for (t0, lane, y0, cls, vis, v), (t1, _, y1, *_) in zip(rows, rows[1:]):
+        for (t0, lane, y0, cls, vis, v, length), (t1, _, y1, *_) in zip(rows, rows[1:]):
             y = lines.get(lane)
             if y is not None and y1 != y and (y0 - y) * (y1 - y) <= 0:  # a sample on the line: the next pair
                 out.append({"lane": lane, "t": t0 + (y - y0) / (y1 - y0) * (t1 - t0), "vehicle_id": vid,
-                            "class": cls, "visible": vis, "speed_kmh": 3.6 * v, "sign": 1 if y1 > y0 else -1})
+                            "class": cls, "visible": vis, "speed_kmh": 3.6 * v, "sign": 1 if y1 > y0 else -1,
+                            "length_m": length})
     return sorted(out, key=lambda c: c["t"])
 
 
@@ -397,6 +399,32 @@ def format_spot_speeds(errors: dict[int, list[float]]) -> str:
     return "\n".join(lines)
 
 
+def record_classes_right(cmp: CountComparison, vehicles: list[dict],
+                         measures: MeasuresConfig | None = None) -> dict[str, tuple[int, int]]:
+    """Per truth vehicle class: of the matched crossings whose vehicle has a record, how many, and how many
+    records' lengths fall in the truth length's length class (what the periods' class counts rest on)."""
+    m = measures or MeasuresConfig()
+    # a SQLite result names a record's vehicle vehicle_id, a CSV one id
+    ids = ((v.get("vehicle_id", v.get("id")), v.get("length_m")) for v in vehicles)
+    record = {int(vid): length for vid, length in ids if vid is not None}
+    out: dict[str, tuple[int, int]] = {}
+    for h, r in cmp.matches:
+        length = record.get(int(r["vehicle_id"])) if r.get("vehicle_id") is not None else None
+        if length is None or h.get("length_m") is None:
+            continue
+        n, right = out.get(h["class"], (0, 0))
+        out[h["class"]] = (n + 1, right + (length_class(float(length), m) == length_class(float(h["length_m"]), m)))
+    return out
+
+
+def format_record_classes(right: dict[str, tuple[int, int]]) -> str:
+    """One line: per truth class (the most numerous first) the share classed right, of how many."""
+    if not right:
+        return "  none (write the vehicle records with roadwatch replay --vehicles)"
+    ranked = sorted(right.items(), key=lambda kv: -kv[1][0])
+    return "  " + ", ".join(f"{cls} {100 * k / n:.0f} % of {n}" for cls, (n, k) in ranked)
+
+
 def loop_occupancy_vs_counts(counts: dict, loop_events: list[dict], fps: float | None = None) -> list[dict]:
     """Per lane: the results' loop occupancy over the hand count's occupancy frame range, next to the
     hand-count file's (mask-based) value."""
@@ -494,6 +522,8 @@ def evaluate(results_path: str, truth_dir: str | None, counts_path: str | None, 
                 click.echo(format_causes(cause_counts(xc, causes)))
                 click.echo(f"\nSpot speeds at the count line (matched vehicles at {SPOT_MIN_KMH:.0f} km/h or more):")
                 click.echo(format_spot_speeds(spot_speed_errors(xc)))
+                click.echo("\nLength class right in the matched vehicles' records, by the truth vehicle's class:")
+                click.echo(format_record_classes(record_classes_right(xc, results.get("vehicles", []))))
             if edie_parts:
                 click.echo(_edie_parts_report(truth, results, site_path or Path(truth_dir).parent / "site.toml"))
             from tools import plots

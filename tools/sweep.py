@@ -20,7 +20,8 @@ import numpy as np
 from tools.edie_parts import format_total, total_parts
 from tools.evaluate import (EXTRA_CAUSES, MISSED_CAUSES, TABLE1_BANDS, EvaluateError, TruthComparison, cause_counts,
                             compare_crossings_with_truth, compare_with_truth, edie_parts_of, format_causes,
-                            format_class_counts, load_results, load_truth, period_errors, table1)
+                            format_class_counts, format_record_classes, load_results, load_truth, period_errors,
+                            record_classes_right, table1)
 from tools.loop_classes import format_loop_classes, merge, scene_loop_classes, to_json
 from tools.simulate.presets import PRESETS
 
@@ -177,6 +178,7 @@ def sweep(presets: str, seeds: str, seconds: float, work: Path, size: str, tag: 
     lanes = []  # every scene's lanes, for the Edie parts' sums
     loops = []  # every scene's loop actuations by class
     classes: dict[str, tuple[int, int]] = {}  # length class -> (truth, result) counts over the whole scenes
+    records: dict[str, tuple[int, int]] = {}  # truth class -> (matched vehicles with a record, classed right)
     # how many scenes each encoder wrote: the same scene encoded by OpenCV's mp4v instead of ffmpeg's H.264
     # replays differently, so sweeps compare only on footage from one encoder
     encoders: dict[str, int] = {}
@@ -194,7 +196,11 @@ def sweep(presets: str, seeds: str, seconds: float, work: Path, size: str, tag: 
         enc = truth["meta"].get("encoder", "unknown")
         encoders[enc] = encoders.get(enc, 0) + 1
         if results["crossings"]:
-            causes[sc.name] = cause_counts(compare_crossings_with_truth(truth, results["crossings"]))
+            xc = compare_crossings_with_truth(truth, results["crossings"])
+            causes[sc.name] = cause_counts(xc)
+            for name, (n, k) in record_classes_right(xc, results.get("vehicles", [])).items():
+                n0, k0 = records.get(name, (0, 0))
+                records[name] = (n0 + n, k0 + k)
         by_class = scene_loop_classes(truth, results)
         if by_class is not None:
             loops.append(by_class)
@@ -213,6 +219,10 @@ def sweep(presets: str, seeds: str, seconds: float, work: Path, size: str, tag: 
         click.echo(f"Count-line crossings against the truth's, extra and missed by likely cause "
                    f"({len(causes)} scenes):")
         click.echo(format_causes(total))
+    if records:
+        click.echo(f"Length class right in the matched vehicles' records, by the truth vehicle's class "
+                   f"({len(causes)} scenes; as evaluate --crossings):")
+        click.echo(format_record_classes(records))
     parts_total = total_parts(lanes) if parts else {}
     if parts:
         click.echo(f"Edie distance and time counted, by the truth vehicle under each track ({len(parts)} scenes; "
@@ -227,5 +237,5 @@ def sweep(presets: str, seeds: str, seconds: float, work: Path, size: str, tag: 
         json_out.write_text(json.dumps({"tag": tag, "scenes": rows, "summary": summary, "causes": causes,
                                         "causes_total": total, "edie_parts": parts, "edie_parts_total": parts_total,
                                         "loop_classes": to_json(loop_total), "encoders": encoders,
-                                        "class_counts": classes},
+                                        "class_counts": classes, "record_classes_right": records},
                                        indent=1, default=lambda o: str(o)))
