@@ -67,11 +67,14 @@ def load_results(path: str | Path) -> dict[str, list[dict]]:
     if not p.exists():
         raise EvaluateError(f"{p}: no such results file")
     if p.suffix.lower() == ".csv":
+        vehicles = read_csv(p.with_name(p.stem + "_vehicles.csv"))
+        for v in vehicles:  # the CSV holds VehicleRecord's fields (id); the SQLite table names it vehicle_id
+            v.setdefault("vehicle_id", v.get("id"))
         return {
             "periods": read_csv(p),
             "crossings": read_csv(p.with_name(p.stem + "_crossings.csv")),
             "loop_events": read_csv(p.with_name(p.stem + "_loop_events.csv")),
-            "vehicles": read_csv(p.with_name(p.stem + "_vehicles.csv")),
+            "vehicles": vehicles,
             "edie_segments": read_csv(p.with_name(p.stem + "_edie_segments.csv")),
         }
     try:
@@ -164,11 +167,9 @@ def compare_with_truth(truth: dict, results: dict, include_partial: bool = True)
         cmp.lane_counts[lane] = (tc + int(t["count"]), rc + int(r["count"]))
         for name, e in period_errors(t, r).items():
             (cmp.occupancy_pp if name == "occupancy" else cmp.errors[name]).append(e)
-        for slot, row in enumerate((t, r)):
-            for name, n in (row.get("class_counts") or {}).items():
-                c = list(cmp.class_counts.get(name, (0, 0)))
-                c[slot] += int(n)
-                cmp.class_counts[name] = (c[0], c[1])
+        t_cls, r_cls = t.get("class_counts") or {}, r.get("class_counts") or {}
+        add_pair_counts(cmp.class_counts, {name: (int(t_cls.get(name, 0)), int(r_cls.get(name, 0)))
+                                           for name in t_cls.keys() | r_cls.keys()})
     for ev, slot in ((truth.get("loop_events", []), 0), (results.get("loop_events", []), 1)):
         for e in ev:
             ch = int(e["channel"])
@@ -176,6 +177,13 @@ def compare_with_truth(truth: dict, results: dict, include_partial: bool = True)
             c[slot] += 1
             cmp.loop_counts[ch] = tuple(c)
     return cmp
+
+
+def add_pair_counts(total: dict[str, tuple[int, int]], more: dict[str, tuple[int, int]]) -> None:
+    """Add more's (a, b) counts per name into total's, in place."""
+    for name, (a, b) in more.items():
+        ta, tb = total.get(name, (0, 0))
+        total[name] = (ta + a, tb + b)
 
 
 def format_class_counts(counts: dict[str, tuple[int, int]]) -> str:
@@ -404,9 +412,7 @@ def record_classes_right(cmp: CountComparison, vehicles: list[dict],
     """Per truth vehicle class: of the matched crossings whose vehicle has a record, how many, and how many
     records' lengths fall in the truth length's length class (what the periods' class counts rest on)."""
     m = measures or MeasuresConfig()
-    # a SQLite result names a record's vehicle vehicle_id, a CSV one id
-    ids = ((v.get("vehicle_id", v.get("id")), v.get("length_m")) for v in vehicles)
-    record = {int(vid): length for vid, length in ids if vid is not None}
+    record = {int(v["vehicle_id"]): v.get("length_m") for v in vehicles if v.get("vehicle_id") is not None}
     out: dict[str, tuple[int, int]] = {}
     for h, r in cmp.matches:
         length = record.get(int(r["vehicle_id"])) if r.get("vehicle_id") is not None else None

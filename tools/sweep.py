@@ -18,10 +18,10 @@ import click
 import numpy as np
 
 from tools.edie_parts import format_total, total_parts
-from tools.evaluate import (EXTRA_CAUSES, MISSED_CAUSES, TABLE1_BANDS, EvaluateError, TruthComparison, cause_counts,
-                            compare_crossings_with_truth, compare_with_truth, edie_parts_of, format_causes,
-                            format_class_counts, format_record_classes, load_results, load_truth, period_errors,
-                            record_classes_right, table1)
+from tools.evaluate import (EXTRA_CAUSES, MISSED_CAUSES, TABLE1_BANDS, EvaluateError, TruthComparison, add_pair_counts,
+                            cause_counts, compare_crossings_with_truth, compare_with_truth, edie_parts_of,
+                            format_causes, format_class_counts, format_record_classes, load_results, load_truth,
+                            period_errors, record_classes_right, table1)
 from tools.loop_classes import format_loop_classes, merge, scene_loop_classes, to_json
 from tools.simulate.presets import PRESETS
 
@@ -190,17 +190,13 @@ def sweep(presets: str, seeds: str, seconds: float, work: Path, size: str, tag: 
         whole = compare_with_truth(truth, results, include_partial=True)
         periods = compare_with_truth(truth, results, include_partial=partial)
         rows += _lane_rows(sc.name, whole, periods)
-        for name, (t, r) in whole.class_counts.items():
-            ct, cr = classes.get(name, (0, 0))
-            classes[name] = (ct + t, cr + r)
+        add_pair_counts(classes, whole.class_counts)
         enc = truth["meta"].get("encoder", "unknown")
         encoders[enc] = encoders.get(enc, 0) + 1
         if results["crossings"]:
             xc = compare_crossings_with_truth(truth, results["crossings"])
             causes[sc.name] = cause_counts(xc)
-            for name, (n, k) in record_classes_right(xc, results.get("vehicles", [])).items():
-                n0, k0 = records.get(name, (0, 0))
-                records[name] = (n0 + n, k0 + k)
+            add_pair_counts(records, record_classes_right(xc, results.get("vehicles", [])))
         by_class = scene_loop_classes(truth, results)
         if by_class is not None:
             loops.append(by_class)
