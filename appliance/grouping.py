@@ -938,9 +938,18 @@ class Grouper:
             m = groups[host]
             return m[~self.lifted[m]]
 
-        # shadow(group slots, host id): the image test for a group lying only on the host's shadow
-        shadow = None if is_shadow is None else (
-            lambda a, host: host in groups and len(seen(host)) > 0 and is_shadow(px[a], px[seen(host)]))
+        def on_shadow(a: np.ndarray, host: int) -> bool:
+            """The image test for a group (slots) lying only on the host's shadow, or whose near end does while
+            the rest of it is the host's raised parts (a van's windscreen found with the corner of its shadow)."""
+            if host not in groups or len(seen(host)) == 0:
+                return False
+            if is_shadow(px[a], px[seen(host)]):
+                return True
+            near = s[a, 1] < s[a, 1].min() + NEAR_REP_M
+            return (not near.all() and self._raised_over(a[~near], host, s)
+                    and is_shadow(px[a[near]], px[seen(host)]))
+
+        shadow = None if is_shadow is None else on_shadow
         # joined(group slots, host id): the image test for a group and the host being one body
         joined = None if is_joined is None else (
             lambda a, host, share=None: host in groups and len(seen(host)) > 0
@@ -1477,6 +1486,22 @@ class Grouper:
                 self._by_shadow = True
                 return vid
         return None
+
+    def _raised_over(self, slots: np.ndarray, host: int, s: np.ndarray) -> bool:
+        """Whether features are raised parts of vehicle host: each faster than it in projection as a part above
+        the road is (LEVEL_K to k_max), and their height magnification undone, their middle over its footprint."""
+        o = self.tracks[host].last
+        if self.foot is None or o is None or abs(o.vy) < MOVING_MPS:
+            return False
+        k = s[slots, 3] / o.vy
+        if not ((k > LEVEL_K) & (k <= self.k_max)).all():
+            return False
+        fx, fy = self.foot[0], self.foot[1]
+        gx = float(np.median(fx + (s[slots, 0] - fx) / k))
+        gy = float(np.median(fy + (s[slots, 1] - fy) / k))
+        lo, hi = _extent(o, self.tracks[host].own_length)
+        x_lo, x_hi = self.tracks[host].elevated_x()
+        return x_lo - FRAGMENT_X_MARGIN_M <= gx <= x_hi + FRAGMENT_X_MARGIN_M and lo <= gy <= _elevated_reach(lo, hi)
 
     def _leans_away(self, x: float, host_x: float) -> bool:
         """Whether a point at x across the road lies on the side of a vehicle at host_x away from the camera,

@@ -267,6 +267,30 @@ def test_a_long_shadow_cast_over_the_next_lane_into_the_one_beyond_joins_its_veh
     assert _counted(_run([car, shade], frames=80, lanes=lanes, shadow_seen=lambda f: False)) == 2
 
 
+def test_a_group_of_a_vehicles_shadow_and_its_raised_parts_joins_it():
+    """A van's windscreen, leaning into the next lane in projection, is found in one group with the corner of
+    the van's shadow there, which is that group's near end: the image test finds the whole group no shadow
+    (the windscreen is in its box), its near end a shadow, and the rest of it moves as the van's raised parts
+    over the van's footprint. It joins the van; with the whole group tested, the two are two vehicles. With the
+    raised part over its own lane, the group is a vehicle of its own."""
+    lanes = (("approaching", -8.0, -4.5), ("approaching", -4.5, -1.0))
+    van = (_box(-4.2, -2.2, 45.0, 47.0, 10, 61), -12.0, 2, 0, 0.0)
+
+    def near_end_only(pts: np.ndarray) -> bool:  # the image test: a shadow where the box holds the corner alone
+        return bool(((pts[:, 0] >= -6.05) & (pts[:, 0] <= -5.35)).all())
+
+    corner = (_box(-6.0, -5.4, 49.0, 50.5, 5, 62), -12.0, 1, 0, 0.0)
+    screen = (_box(-4.2, -4.0, 46.0, 46.6, 4, 63), -12.0, 1, 0, 1.3)
+    seen = _run([van, corner, screen], frames=80, lanes=lanes, shadow_seen=lambda f: f >= 10,
+                shadow_at=near_end_only)
+    assert _counted(seen) == 1, {k: len(v) for k, v in seen.items()}
+    # the same group's raised part over its own lane, not over the van: a vehicle of its own
+    over_lane_1 = (_box(-6.0, -5.8, 46.0, 46.6, 4, 63), -12.0, 1, 0, 1.3)
+    seen = _run([van, corner, over_lane_1], frames=80, lanes=lanes, shadow_seen=lambda f: f >= 10,
+                shadow_at=near_end_only)
+    assert _counted(seen) == 2, {k: len(v) for k, v in seen.items()}
+
+
 @pytest.mark.parametrize("dragged_m", [0.0, 1.2])
 def test_a_group_standing_still_before_it_moves_dates_its_trajectory_from_the_move(dragged_m):
     """Features on an occluder's edge where vehicles emerge stand still until the vehicle comes out and
