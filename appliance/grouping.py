@@ -763,6 +763,14 @@ class VehicleTrack:
         ELEVATED_WIDTH_M."""
         return min(self.x_lo, self.x_hi - ELEVATED_WIDTH_M), max(self.x_hi, self.x_lo + ELEVATED_WIDTH_M)
 
+    def carries(self, gx: float, gy: float, margin: float = FRAGMENT_X_MARGIN_M) -> bool:
+        """Whether an elevated part whose height is undone to road point (gx, gy) lies on this vehicle: across,
+        over its body's width (elevated_x) with a margin; along, from its footprint's start as far as the
+        longest vehicle reaches (_elevated_reach)."""
+        lo, hi = _extent(self.last, self.own_length)
+        x_lo, x_hi = self.elevated_x()
+        return lo <= gy <= _elevated_reach(lo, hi) and x_lo - margin <= gx <= x_hi + margin
+
     def steady_vy(self, fallback: float) -> float:
         """The along-road speed of the near end over the last SPEED_WINDOW_S (steadier than one frame's), or
         the features' speed (fallback) if that is faster: a near end lags its features while it is held at
@@ -941,13 +949,13 @@ class Grouper:
         def on_shadow(a: np.ndarray, host: int) -> bool:
             """The image test for a group (slots) lying only on the host's shadow, or whose near end does while
             the rest of it is the host's raised parts (a van's windscreen found with the corner of its shadow)."""
-            if host not in groups or len(seen(host)) == 0:
+            caster = px[seen(host)] if host in groups else px[:0]
+            if len(caster) == 0:
                 return False
-            if is_shadow(px[a], px[seen(host)]):
+            if is_shadow(px[a], caster):
                 return True
             near = s[a, 1] < s[a, 1].min() + NEAR_REP_M
-            return (not near.all() and self._raised_over(a[~near], host, s)
-                    and is_shadow(px[a[near]], px[seen(host)]))
+            return not near.all() and self._raised_over(a[~near], host, s) and is_shadow(px[a[near]], caster)
 
         shadow = None if is_shadow is None else on_shadow
         # joined(group slots, host id): the image test for a group and the host being one body
@@ -1378,15 +1386,12 @@ class Grouper:
             m = FRAGMENT_X_MARGIN_M
             if k > LEVEL_K:
                 if self.foot is not None:
-                    gx = self.foot[0] + (st.x - self.foot[0]) / k
-                    gy = self.foot[1] + (y - self.foot[1]) / k
+                    gx, gy = self._on_road(st.x, y, k)
                 else:  # camera unknown: an elevated part may lie anywhere across the vehicle's lane
                     m = FRAGMENT_X_MARGIN_NO_CAMERA_M
             on = lo <= gy <= hi and other.x_lo - m <= gx <= other.x_hi + m
             if not on and k > LEVEL_K and self.foot is not None and joined is not None:
-                x_lo, x_hi = other.elevated_x()
-                on = (lo <= gy <= _elevated_reach(lo, hi) and x_lo - m <= gx <= x_hi + m
-                      and joined(members, vid))  # the image test last: it is the dearest
+                on = other.carries(gx, gy, m) and joined(members, vid)  # the image test last: it is the dearest
             if on:
                 self._place = gy - o.y_front  # where on the vehicle the group lies
                 self._k = k
@@ -1496,12 +1501,14 @@ class Grouper:
         k = s[slots, 3] / o.vy
         if not ((k > LEVEL_K) & (k <= self.k_max)).all():
             return False
+        gx, gy = self._on_road(s[slots, 0], s[slots, 1], k)
+        return self.tracks[host].carries(float(np.median(gx)), float(np.median(gy)))
+
+    def _on_road(self, x, y, k):
+        """Where on the road lies what is seen at road-plane point(s) (x, y) with height magnification k (the
+        camera's foot must be known)."""
         fx, fy = self.foot[0], self.foot[1]
-        gx = float(np.median(fx + (s[slots, 0] - fx) / k))
-        gy = float(np.median(fy + (s[slots, 1] - fy) / k))
-        lo, hi = _extent(o, self.tracks[host].own_length)
-        x_lo, x_hi = self.tracks[host].elevated_x()
-        return x_lo - FRAGMENT_X_MARGIN_M <= gx <= x_hi + FRAGMENT_X_MARGIN_M and lo <= gy <= _elevated_reach(lo, hi)
+        return fx + (x - fx) / k, fy + (y - fy) / k
 
     def _leans_away(self, x: float, host_x: float) -> bool:
         """Whether a point at x across the road lies on the side of a vehicle at host_x away from the camera,
