@@ -157,7 +157,12 @@ RIGID_EVERY = 10
 # vehicle (its top at k over its leader's, a constant further on), and only the road seen between the two tells
 # them apart. Hence only while the vehicle moves at ADOPT_MIN_MPS or faster: followers then keep a gap of 15 m or
 # more (a second's headway), longer than what a car hides of the road behind it 45 m from a 10 m pole (8 m); in
-# slower traffic a follower's top is seen right over the car ahead, as a long vehicle's would be.
+# slower traffic a follower's top is seen right over the car ahead, as a long vehicle's would be. So in slower
+# traffic an elevated part seen in another lane than its vehicle (Grouper._host_of) is its part only where the image
+# between the two is its body, also when its height undone puts it on the footprint seen: in congestion the lanes
+# move at different speeds, and a car closing in on one ahead in the next lane (its speed 1.3-1.8 times the
+# other's) lies in projection where that car's top would at that height (on the shockwave scenes their lane-1 cars
+# were counted 7-9 short, joined to lane-2 cars).
 ADOPT_MIN_MPS = 15.0
 ADOPT_S = 2.0
 ADOPT_K_MIN = 1.1
@@ -1390,8 +1395,12 @@ class Grouper:
                 else:  # camera unknown: an elevated part may lie anywhere across the vehicle's lane
                     m = FRAGMENT_X_MARGIN_NO_CAMERA_M
             on = lo <= gy <= hi and other.x_lo - m <= gx <= other.x_hi + m
-            if not on and k > LEVEL_K and self.foot is not None and joined is not None:
-                on = other.carries(gx, gy, m) and joined(members, vid)  # the image test last: it is the dearest
+            # in slow traffic a part seen in the next lane may be a follower there (see ADOPT_MIN_MPS)
+            image = on and k > LEVEL_K and other.lane_index != tr.lane_index and abs(ov) < ADOPT_MIN_MPS
+            if not on and k > LEVEL_K and self.foot is not None:
+                on = image = other.carries(gx, gy, m)
+            if image:  # the image test last: it is the dearest
+                on = joined is not None and joined(members, vid)
             if on:
                 self._place = gy - o.y_front  # where on the vehicle the group lies
                 self._k = k

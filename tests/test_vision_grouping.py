@@ -802,6 +802,29 @@ def test_a_trucks_box_seen_beyond_its_cab_and_over_the_next_lane_joins_it_where_
     assert _counted(seen) == (1 if joined else 2), {k: len(v) for k, v in seen.items()}
 
 
+LEFT_OF_CAMERA = (("approaching", -7.0, -3.5), ("approaching", -3.5, 0.0))  # lane 2 runs beside the camera's foot
+
+
+@pytest.mark.parametrize("speed, joined, counted", [(9.0, False, 2), (9.0, True, 1), (16.0, False, 1)])
+def test_in_slow_traffic_a_car_closing_in_the_next_lane_is_no_top_of_the_car_ahead(speed, joined, counted):
+    """Congestion: a car in lane 2 runs at 9 m/s, and one in lane 1, further from the camera's foot across the
+    road, comes on 1.4 times as fast 25 m further up. The follower lies in projection just where a part 4 m up on
+    the car would (its place undone by the speed ratio falls on the car's footprint seen: a tall vehicle's top
+    leans into the next lane), and keeps that place while both hold their speeds. Below ADOPT_MIN_MPS that is no
+    evidence of a part seen over the next lane: only the image between the two (the car's body, not road) joins
+    them. At 16 m/s no follower runs 1.4 times as fast as the traffic beside it: the place is enough there (a
+    tall vehicle's top)."""
+    car = (_box(-3.0, -1.2, 40.0, 44.5, 10, 61), -speed, 2, 0, 0.0)
+    ahead = _run([car], lanes=LEFT_OF_CAMERA, joined=joined)
+    cx, cy, _ = SiteZones(parse_site(site_dict(lanes=LEFT_OF_CAMERA))).camera
+    k = 1.4
+    y0 = cy + k * (40.0 + 2.0 - cy)  # 2 m behind the car's front once k is undone
+    follower = (_box(-4.8, -3.8, y0, y0 + 4.0, 8, 62), -speed * k, 1, 12, 0.0)
+    seen = _run([car, follower], lanes=LEFT_OF_CAMERA, joined=joined)
+    assert _counted(ahead) == 1 and cx == pytest.approx(0.0, abs=0.1)
+    assert _counted(seen) == counted, _firsts(seen)
+
+
 @pytest.mark.parametrize("behind, parts", [((15.5, 18.0), 1), ((21.5, 25.0), 2)])
 def test_a_part_beyond_its_cab_joins_as_far_back_as_the_longest_vehicle_reaches(behind, parts):
     """ELEVATED_LENGTH_M (18.75 m, the longest vehicle allowed in the EU: a road train): its rear trailer's top,
