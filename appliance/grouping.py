@@ -1396,10 +1396,10 @@ class Grouper:
                     m = FRAGMENT_X_MARGIN_NO_CAMERA_M
             on = lo <= gy <= hi and other.x_lo - m <= gx <= other.x_hi + m
             # in slow traffic a part seen in the next lane may be a follower there (see ADOPT_MIN_MPS)
-            image = on and k > LEVEL_K and other.lane_index != tr.lane_index and abs(ov) < ADOPT_MIN_MPS
+            ask_image = on and k > LEVEL_K and other.lane_index != tr.lane_index and abs(ov) < ADOPT_MIN_MPS
             if not on and k > LEVEL_K and self.foot is not None:
-                on = image = other.carries(gx, gy, m)
-            if image:  # the image test last: it is the dearest
+                on = ask_image = other.carries(gx, gy, m)
+            if ask_image:  # the image test last: it is the dearest
                 on = joined is not None and joined(members, vid)
             if on:
                 self._place = gy - o.y_front  # where on the vehicle the group lies

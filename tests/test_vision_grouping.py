@@ -14,6 +14,7 @@ from tests.test_vision_pipeline import site_dict
 
 DT = 0.04
 RECEDING_BESIDE_APPROACHING = (("receding", -3.5, 0.0), ("approaching", 0.0, 3.5))  # lane 1 recedes
+LEFT_OF_CAMERA = (("approaching", -7.0, -3.5), ("approaching", -3.5, 0.0))  # lane 2 runs beside the camera's foot
 COUNT_Y = 30.0
 SETTLING = 0.6
 
@@ -802,13 +803,10 @@ def test_a_trucks_box_seen_beyond_its_cab_and_over_the_next_lane_joins_it_where_
     assert _counted(seen) == (1 if joined else 2), {k: len(v) for k, v in seen.items()}
 
 
-LEFT_OF_CAMERA = (("approaching", -7.0, -3.5), ("approaching", -3.5, 0.0))  # lane 2 runs beside the camera's foot
-
-
 @pytest.mark.parametrize("speed, joined, counted", [(9.0, False, 2), (9.0, True, 1), (16.0, False, 1)])
 def test_in_slow_traffic_a_car_closing_in_the_next_lane_is_no_top_of_the_car_ahead(speed, joined, counted):
     """Congestion: a car in lane 2 runs at 9 m/s, and one in lane 1, further from the camera's foot across the
-    road, comes on 1.4 times as fast 25 m further up. The follower lies in projection just where a part 4 m up on
+    road, comes on 1.4 times as fast 30 m further up. The follower lies in projection just where a part 4 m up on
     the car would (its place undone by the speed ratio falls on the car's footprint seen: a tall vehicle's top
     leans into the next lane), and keeps that place while both hold their speeds. Below ADOPT_MIN_MPS that is no
     evidence of a part seen over the next lane: only the image between the two (the car's body, not road) joins
