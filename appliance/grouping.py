@@ -892,14 +892,13 @@ class Grouper:
         y, x, vy, x_lo, x_hi = np.array([[tr.trajectory[-1][2], tr.last.x, tr.last.vy, tr.x_lo, tr.x_hi]
                                          for tr in cur]).T
         lo, hi = np.array([_extent(tr.last, tr.own_length) for tr in cur]).T
-        fx, fy = self.foot[0], self.foot[1]
+        fy = self.foot[1]
         with np.errstate(divide="ignore", invalid="ignore"):
             k = vy[:, None] / vy[None, :]  # [part, vehicle]
         ok = ((n[None, :] > n[:, None]) & (np.abs(lane[:, None] - lane[None, :]) <= 1)
               & (k >= RECHECK_K_MIN) & (k <= self.k_max) & (np.abs(vy)[None, :] >= PART_MIN_MPS))
         k = np.where(ok, k, 1.0)
-        gy = fy + (y[:, None] - fy) / k
-        gx = fx + (x[:, None] - fx) / k
+        gx, gy = self._on_road(x[:, None], y[:, None], k)
         slack = (1.0 - 1.0 / k) * FOOT_UNCERTAINTY * np.abs(y[:, None] - fy)
         on = (ok & (gy >= lo[None, :] - slack) & (gy <= hi[None, :] + slack)
               & (gx >= x_lo[None, :] - FRAGMENT_X_MARGIN_M) & (gx <= x_hi[None, :] + FRAGMENT_X_MARGIN_M))
@@ -1218,7 +1217,7 @@ class Grouper:
                  and abs(h.last.vy) >= ADOPT_MIN_MPS] if due else []
         if not hosts:
             return out
-        fx, fy = self.foot[0], self.foot[1]
+        fy = self.foot[1]
         lane, hvy, d = np.array([(h.lane_index, h.last.vy, h.trajectory[-1][2] - fy) for h in hosts]).T
         part_lane = np.array([tr.lane_index for tr, _, _ in due])
         x, q, vy = np.array([row[:3] for _, _, row in due]).T
@@ -1247,7 +1246,7 @@ class Grouper:
                 place = c / k * np.sign(d[i])
                 if place > ADOPT_FAR_M and k < self.k_far:
                     continue
-                gx = fx + (x[a] - fx) / k
+                gx = self._on_road(x[a], fy + q[a], k)[0]
                 x_lo, x_hi = h.elevated_x()
                 if -1.0 <= place <= max(h.own_length, ELEVATED_LENGTH_M) + 1.0 \
                         and x_lo - FRAGMENT_X_MARGIN_M <= gx <= x_hi + FRAGMENT_X_MARGIN_M \
@@ -1366,7 +1365,7 @@ class Grouper:
         # that spares most vehicles the rest)
         g_lo = g_hi = y
         if self.foot is not None:
-            g_far = self.foot[1] + (y - self.foot[1]) / self.k_max
+            g_far = self._on_road(st.x, y, self.k_max)[1]
             g_lo, g_hi = min(y, g_far), max(y, g_far)
         for vid, other in self.tracks.items():
             o = other.last
@@ -1416,7 +1415,7 @@ class Grouper:
         against it (see _watched), which judges it on its speeds as they settle."""
         if self.foot is None or joined is None:
             return None
-        fx, fy = self.foot[0], self.foot[1]
+        fy = self.foot[1]
         for vid, other in self.tracks.items():
             o = other.last
             if vid == tr.id or not other.reported or o is None or o.t != st.t or o.vy * vy <= 0:
@@ -1435,12 +1434,12 @@ class Grouper:
             if k_lo > k_hi:
                 continue
             k = np.linspace(k_lo, k_hi, 8)
-            gx = fx + (st.x - fx) / k
+            gx = self._on_road(st.x, y, k)[0]
             fits = (gx >= x_lo) & (gx <= x_hi)
             if not fits.any() or not joined(members, vid):
                 continue
             self._k = float(k[np.argmax(fits)])
-            self._place = fy + (y - fy) / self._k - o.y_front
+            self._place = self._on_road(st.x, y, self._k)[1] - o.y_front
             tr.unsure = True
             return vid
         return None
@@ -1513,7 +1512,8 @@ class Grouper:
         gx, gy = self._on_road(s[slots, 0], s[slots, 1], k)
         return self.tracks[host].carries(float(np.median(gx)), float(np.median(gy)))
 
-    def _on_road(self, x, y, k):
+    def _on_road(self, x: float | np.ndarray, y: float | np.ndarray, k: float | np.ndarray
+                 ) -> tuple[float | np.ndarray, float | np.ndarray]:
         """Where on the road lies what is seen at road-plane point(s) (x, y) with height magnification k (the
         camera's foot must be known)."""
         fx, fy = self.foot[0], self.foot[1]
