@@ -779,18 +779,23 @@ class VehicleTrack:
     def steady_vy(self, fallback: float) -> float:
         """The along-road speed of the near end over the last SPEED_WINDOW_S (steadier than one frame's), or
         the features' speed (fallback) if that is faster: a near end lags its features while it is held at
-        the image's edge (a receding vehicle entering at the bottom) or while its lowest feature changes."""
+        the image's edge (a receding vehicle entering at the bottom) or while its lowest feature changes.
+        It is the median of its steps' rates: a near end that jumps (a lower feature joined, such as the
+        corner of the vehicle's shadow) moves so in one step, which would add metres to the run over the window."""
         tr = self.trajectory
         if len(tr) < 3:
             return fallback
-        t1, _, y1 = tr[-1]
+        t1 = tr[-1][0]
         if self._near_vy[0] == (t1, len(tr)):
             v = self._near_vy[1]
         else:
-            for t0, _, y0 in reversed(tr):
-                if t1 - t0 >= SPEED_WINDOW_S:
-                    break
-            v = (y1 - y0) / (t1 - t0) if t1 - t0 >= 0.2 else None
+            i = len(tr) - 1
+            while i > 0 and t1 - tr[i][0] < SPEED_WINDOW_S:
+                i -= 1
+            pts = np.array([(p[0], p[2]) for p in tr[i:]])
+            dt = np.diff(pts[:, 0])
+            ok = dt > 0.0
+            v = float(np.median(np.diff(pts[:, 1])[ok] / dt[ok])) if t1 - pts[0, 0] >= 0.2 and ok.any() else None
             self._near_vy = ((t1, len(tr)), v)
         return fallback if v is None or abs(fallback) > abs(v) else v
 
