@@ -13,6 +13,14 @@ from numba import njit
 WARMUP_SAMPLES = 25
 WARMUP_EVERY = 2
 UPDATE_EVERY = 4  # ... then follows it: frames between updates (moving vehicles never stay long enough)
+# ... but where traffic covers the road much of the time (far away a tall vehicle's body and shadow cover many
+# rows; a platoon of trucks passes for seconds) a step each update drags the median 10 grey levels or more off
+# the road, which then reads brightened in sunlit places and fails the shadow test. A pixel this far off the
+# background is something on the road (a vehicle, its shadow) and is learnt at one update in FOREGROUND_EVERY
+# only, unless most of the frame is that far off (the light changed):
+FOREGROUND = 30
+FOREGROUND_EVERY = 8
+LIGHT_CHANGE_SHARE = 0.5
 FAST_UPDATES = 100  # the first updates move this many grey levels at once (what stood through the start) ...
 FAST_STEP = 4
 # ... and the loops' watches (appliance.presence) start from it only after this many (8 s more at 25 fps): a
@@ -83,8 +91,13 @@ class Background:
             return
         self.offset += np.clip(np.asarray(offset, np.float64) - self.offset, -OFFSET_STEP_PX, OFFSET_STEP_PX)
         step = FAST_STEP if self.updates < FAST_UPDATES else 1
-        cv2.add(self.bg, step, dst=self.bg, mask=cv2.compare(img, self.bg, cv2.CMP_GT))
-        cv2.subtract(self.bg, step, dst=self.bg, mask=cv2.compare(img, self.bg, cv2.CMP_LT))
+        up, down = cv2.compare(img, self.bg, cv2.CMP_GT), cv2.compare(img, self.bg, cv2.CMP_LT)
+        if self.updates >= FAST_UPDATES and self.updates % FOREGROUND_EVERY:
+            road = cv2.compare(cv2.absdiff(img, self.bg), FOREGROUND, cv2.CMP_LE)
+            if cv2.countNonZero(road) >= (1.0 - LIGHT_CHANGE_SHARE) * road.size:
+                up, down = cv2.bitwise_and(up, road), cv2.bitwise_and(down, road)
+        cv2.add(self.bg, step, dst=self.bg, mask=up)
+        cv2.subtract(self.bg, step, dst=self.bg, mask=down)
         self.updates += 1
 
     @property

@@ -4,8 +4,9 @@ texture, a vehicle (dark or bright) hides it; two parts are one body where no ro
 import numpy as np
 import pytest
 
-from appliance.background import (FAST_STEP, SETTLE_UPDATES, UPDATE_EVERY, WARMUP_EVERY, WARMUP_SAMPLES, Background,
-                                  temporal_median)
+from appliance import background
+from appliance.background import (FAST_STEP, FAST_UPDATES, SETTLE_UPDATES, UPDATE_EVERY, WARMUP_EVERY,
+                                  WARMUP_SAMPLES, Background, temporal_median)
 
 
 def _road(seed: int = 0, std: float = 14.0) -> np.ndarray:
@@ -60,6 +61,51 @@ def test_a_vehicle_standing_through_the_start_is_unlearnt_before_the_background_
     err = np.abs(bg.bg.astype(int) - road.astype(int))
     assert err.max() < FAST_STEP, err.max()  # within a step of it
     assert bg.updates == SETTLE_UPDATES
+
+
+@pytest.mark.parametrize("selective", [True, False])
+def test_traffic_covering_a_place_most_of_the_time_does_not_drag_the_background_off_the_road(monkeypatch,
+                                                                                            selective):
+    """Far away, tall vehicles and their shadows cover some rows most of the time: here a dark platoon covers a
+    patch for 2 s in every 3 (25 fps). Learning what it sees there at every update, the running median follows
+    the vehicles down; learning such far-off pixels at one update in FOREGROUND_EVERY, it stays on the road."""
+    if not selective:
+        monkeypatch.setattr(background, "FOREGROUND_EVERY", 1)
+    road = _road()
+    bg = _learnt(road)
+    while bg.updates < FAST_UPDATES:
+        bg.update(road)
+    for i in range(25 * 60):
+        img = road.copy()
+        if i % 75 < 50:
+            img[30:70, 40:90] = 40
+        bg.update(img)
+    err = np.abs(bg.bg[30:70, 40:90].astype(int) - road[30:70, 40:90].astype(int))
+    if selective:
+        assert np.percentile(err, 90) <= 6, np.percentile(err, 90)
+    else:
+        assert np.median(err) > 20  # what the test guards against
+
+
+@pytest.mark.parametrize("light_rule", [True, False])
+def test_when_the_light_changes_the_whole_background_follows_at_once(monkeypatch, light_rule):
+    """The camera's gain rises: the whole frame is 40 grey levels brighter. Everything is that far off the
+    background, which is the light's doing, not traffic's: it is learnt at every update (without the rule, at
+    one in FOREGROUND_EVERY, it lags by tens of levels)."""
+    if not light_rule:
+        monkeypatch.setattr(background, "LIGHT_CHANGE_SHARE", 1.0)
+    road = _road()
+    bg = _learnt(road)
+    while bg.updates < FAST_UPDATES:
+        bg.update(road)
+    bright = np.clip(road.astype(int) + 40, 0, 255).astype(np.uint8)
+    for _ in range(45 * UPDATE_EVERY):
+        bg.update(bright)
+    err = np.abs(bg.bg.astype(int) - bright.astype(int))
+    if light_rule:
+        assert np.median(err) <= 1, np.median(err)
+    else:
+        assert np.median(err) > 20
 
 
 def test_the_background_lines_up_with_the_camera_it_learnt_from():
