@@ -23,6 +23,14 @@ def _learnt(road: np.ndarray, noise_seed: int = 1) -> Background:
     return bg
 
 
+def _following(road: np.ndarray) -> Background:
+    """A background learnt from road and past its first fast updates: it follows the frames a step at a time."""
+    bg = _learnt(road)
+    while bg.updates < FAST_UPDATES:
+        bg.update(road)
+    return bg
+
+
 def _box_scene() -> tuple[np.ndarray, Background, np.ndarray]:
     """A textured road, its learnt background, and four points whose test box is rows 37-73, columns 47-103."""
     road = _road()
@@ -72,9 +80,7 @@ def test_traffic_covering_a_place_most_of_the_time_does_not_drag_the_background_
     if not selective:
         monkeypatch.setattr(background, "FOREGROUND_EVERY", 1)
     road = _road()
-    bg = _learnt(road)
-    while bg.updates < FAST_UPDATES:
-        bg.update(road)
+    bg = _following(road)
     for i in range(25 * 60):
         img = road.copy()
         if i % 75 < 50:
@@ -95,9 +101,7 @@ def test_when_the_light_changes_the_whole_background_follows_at_once(monkeypatch
     if not light_rule:
         monkeypatch.setattr(background, "LIGHT_CHANGE_SHARE", 1.0)
     road = _road()
-    bg = _learnt(road)
-    while bg.updates < FAST_UPDATES:
-        bg.update(road)
+    bg = _following(road)
     bright = np.clip(road.astype(int) + 40, 0, 255).astype(np.uint8)
     for _ in range(45 * UPDATE_EVERY):
         bg.update(bright)
