@@ -183,11 +183,7 @@ ADOPT_FAR_MIN_HEIGHT_M = 2.0
 # vehicle as long as the gap and its footprint swallowed the follower.
 LIFTED_TOP_M = 2.8
 LIFTED_LANES = 1000  # lane labels of features found off the lanes, for the pair graph (see Grouper.lifted)
-SPEED_WINDOW_S = 0.5  # speeds compared for the height magnification are averaged over this long ...
-# ... leaving out a step of the near end this much off the window's median step: a jump (a lower feature joined,
-# such as the corner of the vehicle's shadow), not motion (a step is about a metre at 25 fps and 90 km/h; the
-# median of the steps alone reads slow, as a ratcheting near end that jitters makes many steps nought)
-NEAR_JUMP_M = 3.0
+SPEED_WINDOW_S = 0.5  # speeds compared for the height magnification are averaged over this long
 # Reported length: each feature's place on the road behind the near end, from a straight-line fit of its
 # projected distance from the camera's foot against the near end's over its life in the group (slope: its
 # height magnification k; far steadier than one frame's speed ratio), once it has travelled enough with it
@@ -784,7 +780,8 @@ class VehicleTrack:
         """The along-road speed of the near end over the last SPEED_WINDOW_S (steadier than one frame's), or
         the features' speed (fallback) if that is faster: a near end lags its features while it is held at
         the image's edge (a receding vehicle entering at the bottom) or while its lowest feature changes.
-        Its run over the window leaves out the steps that jumped (see NEAR_JUMP_M)."""
+        It is the median of its steps' rates: a near end that jumps (a lower feature joined, such as the
+        corner of the vehicle's shadow) moves so in one step, which would add metres to the run over the window."""
         tr = self.trajectory
         if len(tr) < 3:
             return fallback
@@ -796,10 +793,9 @@ class VehicleTrack:
             while i > 0 and t1 - tr[i][0] < SPEED_WINDOW_S:
                 i -= 1
             pts = np.array([(p[0], p[2]) for p in tr[i:]])
-            dt, dy = np.diff(pts[:, 0]), np.diff(pts[:, 1])
-            kept = np.abs(dy - np.median(dy)) <= NEAR_JUMP_M
-            run_t = float(dt[kept].sum())
-            v = float(dy[kept].sum()) / run_t if t1 - pts[0, 0] >= 0.2 and run_t > 0.0 else None
+            dt = np.diff(pts[:, 0])
+            ok = dt > 0.0
+            v = float(np.median(np.diff(pts[:, 1])[ok] / dt[ok])) if t1 - pts[0, 0] >= 0.2 and ok.any() else None
             self._near_vy = ((t1, len(tr)), v)
         return fallback if v is None or abs(fallback) > abs(v) else v
 
