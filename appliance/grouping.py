@@ -183,7 +183,7 @@ ADOPT_FAR_MIN_HEIGHT_M = 2.0
 # vehicle as long as the gap and its footprint swallowed the follower.
 LIFTED_TOP_M = 2.8
 LIFTED_LANES = 1000  # lane labels of features found off the lanes, for the pair graph (see Grouper.lifted)
-SPEED_WINDOW_S = 0.5  # speeds compared for the height magnification are averaged over this long
+SPEED_WINDOW_S = 0.5  # speeds compared for the height magnification are taken over this long (see steady_vy)
 # Reported length: each feature's place on the road behind the near end, from a straight-line fit of its
 # projected distance from the camera's foot against the near end's over its life in the group (slope: its
 # height magnification k; far steadier than one frame's speed ratio), once it has travelled enough with it
