@@ -49,6 +49,10 @@ CELL_DARK_SHARE = 0.9
 MIN_CELLS = 3  # ... when the box holds this many textured ones
 MIN_CELL_SHARE = 0.6  # ... of which this share must correlate
 MIN_INNER_PX = 12  # else over the dark area without its edge pixels (when this many are left)
+# A few points (a thin shadow's tip, a low sun's: its box is mostly road and penumbra) are judged on a box
+# reaching TOWARD_PX further towards the caster too, along the shadow's body
+TOWARD_MAX_POINTS = 3
+TOWARD_PX = 18
 MIN_ATTACHED_DARK = 0.6  # the image between a vehicle and its shadow is shadow too (a shadow touches its caster)
 MIN_JOINED_SHARE = 0.85  # the image between two parts of one vehicle is that vehicle, not the road
 
@@ -131,7 +135,8 @@ class Background:
         """True when the points pts are on a shadow that reaches the caster's points in the image: the
         road between the two, across the rows they share, is shadowed too (two vehicles side by side
         have sunlit road between them)."""
-        if len(caster) == 0 or not self.is_shadow(img, pts):
+        if len(caster) == 0 or not (self.is_shadow(img, pts) or (
+                len(pts) <= TOWARD_MAX_POINTS and self.is_shadow(img, _toward(pts, caster)))):
             return False
         r0 = int(max(pts[:, 1].min(), caster[:, 1].min()))
         r1 = int(np.ceil(min(pts[:, 1].max(), caster[:, 1].max()))) + 1
@@ -176,6 +181,19 @@ class Background:
         if not self.ready or len(pts) == 0:
             return False
         return bool(shadow_at(img, self.aligned, np.asarray(pts, np.float64), plain_ok))
+
+
+def _toward(pts: np.ndarray, caster: np.ndarray) -> np.ndarray:
+    """pts and two points TOWARD_PX beyond them towards the caster, on their top and bottom rows (not past the
+    caster), for the shadow test's box (see TOWARD_MAX_POINTS)."""
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    if caster[:, 0].max() < lo[0]:
+        x = max(lo[0] - TOWARD_PX, float(caster[:, 0].max()))
+    elif caster[:, 0].min() > hi[0]:
+        x = min(hi[0] + TOWARD_PX, float(caster[:, 0].min()))
+    else:
+        return pts
+    return np.vstack([pts, [[x, lo[1]], [x, hi[1]]]])
 
 
 @njit(cache=True)

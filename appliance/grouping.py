@@ -226,6 +226,10 @@ SHADOW_MAX_WIDTH_M = 9.0
 # (the features seen on a long shadow lie on its far edge, 4-5 m from its caster's side; the image test then
 # checks that the road between the two is shadowed too)
 SHADOW_GAP_M = 6.0
+# A group of fewer features than a vehicle needs may be a longer shadow's tip: a sun 12 degrees up casts a car's
+# 7 m long, a van's 12 m, up to the far side of the lane beyond the next (SHADOW_LANES)
+TIP_MAX_WIDTH_M = 12.5
+TIP_GAP_M = 10.0
 SHADOW_DY_M = 6.0
 SHADOW_LANES = 2  # ... across the next lane into the one beyond
 SHADOW_SPEED_TOL = 0.3  # a new group's features have not settled to its speed yet
@@ -1500,7 +1504,9 @@ class Grouper:
                   and (width <= SIDE_PAIR_WIDTH_M or tr.n_now < other.n_now)
                   and joined is not None and joined(members, vid)):
                 return vid  # a tall vehicle's flank or top, wider in projection: the image between is its body
-            if gap <= SHADOW_GAP_M and width <= SHADOW_MAX_WIDTH_M and shadow is not None and shadow(members, vid):
+            tip = tr.n_now < self.p.min_features
+            if (gap <= (TIP_GAP_M if tip else SHADOW_GAP_M) and width <= (TIP_MAX_WIDTH_M if tip else SHADOW_MAX_WIDTH_M)
+                    and shadow is not None and shadow(members, vid)):
                 self._by_shadow = True
                 return vid
         return None

@@ -352,3 +352,24 @@ def test_on_a_plain_road_a_shadow_dims_nearly_all_of_its_box_evenly(off_rows, sh
     img[47:58, 57:68] = (road[47:58, 57:68] * 0.5).astype(np.uint8)
     img[48:48 + off_rows, 57:68] = (road[48:48 + off_rows, 57:68] * 0.7).astype(np.uint8)
     assert bg.is_shadow(img, pts) == shadow
+
+
+def test_a_thin_shadows_tip_is_judged_with_its_body_towards_the_caster(monkeypatch):
+    """TOWARD_MAX_POINTS: a low sun casts a dark car's shadow as a bar 4-6 pixels high across the next lanes,
+    soft at its edges and its tip. A corner on the tip is judged on its own box (mostly road and penumbra: no
+    shadow by the test) and on one reaching TOWARD_PX along the bar towards the car: a shadow attached to it."""
+    road = _road(5, 9.0)
+    bg = _learnt(road)
+    img = road.astype(np.float32)
+    img[50:72, 20:40] = 25  # the car
+    f = np.ones_like(img)
+    f[60:64, 40:140] = 0.5
+    f[59, 40:140] = f[64, 40:140] = 0.75
+    f[59:65, 135:140] = np.maximum(f[59:65, 135:140], np.linspace(0.5, 1.0, 5)[None, :])
+    img = np.clip(img * f, 0, 255).astype(np.uint8)
+    tip, caster = np.array([[137.0, 60.0]]), np.array([[25.0, 55.0], [35.0, 68.0], [38.0, 60.0]])
+    assert not bg.is_shadow(img, tip)
+    assert bg.is_attached_shadow(img, tip, caster)
+    monkeypatch.setattr("appliance.background.TOWARD_MAX_POINTS", 0)
+    assert not bg.is_attached_shadow(img, tip, caster)
+

@@ -15,9 +15,11 @@ COUNT_Y = 30.0
 
 
 def _run(objects: list[tuple[np.ndarray, float, int, int]], frames: int = 90,
-         lanes: tuple = (("receding", -3.5, 0.0), ("receding", 0.0, 3.5)), joined: bool | None = None) -> list[list]:
-    """objects: (road points (n, 2) at t=0, speed along Y, lane, first frame seen); all on the road plane.
-    joined: what the image test says of any two groups (None: no image)."""
+         lanes: tuple = (("receding", -3.5, 0.0), ("receding", 0.0, 3.5)), joined: bool | None = None,
+         shadow: bool | None = None) -> list[list]:
+    """objects: (road points (n, 2) at t=0, speed along Y, lane, first frame seen[, last]); on the road plane.
+    joined: what the image test says of any two groups; shadow: of any group beside a caster (never of a group
+    on its own); None: no image."""
     site = parse_site(site_dict(lanes=lanes))
     g = Grouper(site.tracking, SiteZones(site))
     n = site.tracking.max_features
@@ -26,9 +28,11 @@ def _run(objects: list[tuple[np.ndarray, float, int, int]], frames: int = 90,
     seen: dict[int, list] = {}
     for f in range(frames):
         slot = 0
-        for pts, speed, ln, first in objects:
+        for pts, speed, ln, first, *last in objects:
             for gx, gy in pts:
-                if f >= first:
+                if last and f > last[0]:
+                    alive[slot] = False
+                elif f >= first:
                     if not alive[slot]:
                         g.reset_slots(np.array([slot]))
                     y = gy + speed * f * DT
@@ -37,6 +41,7 @@ def _run(objects: list[tuple[np.ndarray, float, int, int]], frames: int = 90,
                     lane[slot], alive[slot], age[slot] = ln, True, f - first
                 slot += 1
         states, retire = g.step(f * DT, s, px, lane, alive, age,
+                                is_shadow=None if shadow is None else (lambda a, caster: shadow and caster is not None),
                                 is_joined=None if joined is None else (lambda a, b, share=None: joined))
         alive[retire] = False
         for st in states:
@@ -91,3 +96,20 @@ def test_two_cars_side_by_side_stay_apart_even_where_the_image_shows_no_road_bet
     left = (_box(2.0, 3.9, 10.0, 14.5, 10, 3), 15.0, 1, 0)
     right = (_box(4.1, 6.0, 10.0, 14.5, 10, 5), 15.0, 2, 6)
     assert _counted(_run([left, right], lanes=RIGHT_LANES, joined=True)) == 2
+
+
+# three lanes, the low sun in the west: shadows cast east across the lanes
+THREE_LANES = (("receding", -5.25, -1.75), ("receding", -1.75, 1.75), ("receding", 1.75, 5.25))
+
+
+def test_a_long_shadows_tip_two_lanes_across_joins_its_caster():
+    """A car in lane 1 casts its shadow across lane 2 into lane 3 (a sun 12 degrees up: 7 m long); the corners
+    found on its tip, 8 m across the road from the car's, level with it and as fast, four at first (reported as
+    a vehicle) and two of them soon lost, are its shadow where the image says so (not otherwise). A group of a
+    vehicle's size there is a vehicle, shadow or not."""
+    car = (_box(-4.5, -3.0, 10.0, 14.5, 12, 1), 15.0, 1, 0)
+    tip = [(_box(5.0, 5.2, 10.0, 10.4, 2, 2), 15.0, 3, 6), (_box(5.0, 5.2, 10.0, 10.4, 2, 4), 15.0, 3, 6, 14)]
+    assert _counted(_run([car, *tip], lanes=THREE_LANES, shadow=True)) == 1
+    assert _counted(_run([car, *tip], lanes=THREE_LANES, shadow=False)) == 2
+    other = (_box(3.8, 5.2, 10.0, 14.0, 8, 2), 15.0, 3, 6)
+    assert _counted(_run([car, other], lanes=THREE_LANES, shadow=True)) == 2
