@@ -33,6 +33,11 @@ CARRY_MIN_SPEED = 1.0  # m/s; slower ones are not carried on
 # several features back to the region entry) is extended back at its speed from its first point to the count
 # line, if it entered the view there (first seen in its detection zone, not found again where one was lost)
 LATE_BACKFILL_MIN_GAP_M = 1.0
+# A vehicle the pipeline extended back to its region's entry is extended again when counted, at its average speed
+# from its first own point to the count line (over at least this run), if that is within STEADY_TOL of its speed
+# at the line: a queue's vehicle, slowing on its way, keeps the speed it had when first seen
+REBACKFILL_MIN_RUN_M = 5.0
+STEADY_TOL = 0.15
 # A group whose footprint starts on a bigger group's in its lane (from this far short of that one's start to its
 # length beyond it, at most this far) is a part of that vehicle: Edie counts one step of a vehicle once. (A
 # queued follower stays the length of the vehicle ahead and a standstill gap away from it.)
@@ -93,6 +98,9 @@ class _Track:
     # a count-line crossing waiting while the group is re-checked as a part of another vehicle (see
     # VehicleState.part_of): the arguments of its _count
     held_count: tuple | None = None
+    # the pipeline's extension back to the region's entry (VehicleState.backfilled): True until its segment is
+    # made, then (that segment, capture time and front of its first own point), until it is counted
+    backfill: bool | tuple | None = None
 
 
 @dataclass
@@ -145,7 +153,7 @@ def _states_of(v: VehicleState) -> list[VehicleState]:
     for p in traj:
         t, x, yf = float(p[0]), float(p[1]), float(p[2])
         out.append(VehicleState(v.id, t, x, yf, yf - (v.y_front - v.y_rear), v.vx, v.vy, v.length, v.n_features,
-                                entered=v.entered, spot_vy=v.spot_vy))
+                                entered=v.entered, backfilled=v.backfilled, spot_vy=v.spot_vy))
     if out[-1].t < v.t:
         out.append(v)
     return out
@@ -306,7 +314,8 @@ class TrafficMeasures:
         if tr is None:
             tr = self.tracks[v.id] = _Track(v.t, v.t + offset, (v.t, v.x, v.y_front, v.y_rear, spot),
                                             LaneHistory(), raw, first_y=v.y_front, entered=v.entered,
-                                            covered_from=v.t + offset, edie_ahead=max(v.y_front - v.y_rear, 0.0))
+                                            covered_from=v.t + offset, edie_ahead=max(v.y_front - v.y_rear, 0.0),
+                                            backfill=v.backfilled or None)
             prev = None
         else:
             prev = tr.prev
@@ -338,9 +347,13 @@ class TrafficMeasures:
         if seg_lane is not None and seg_lane not in tr.counted:
             self._check_crossing(v, prev, seg_lane, offset, tr, out)
         if seg_lane is None:
+            tr.backfill = None
             return None
-        return (seg_lane, prev[0] + offset, v.t + offset, _edie_y(prev[2], prev[3], tr.edie_ahead),
-                _edie_y(v.y_front, v.y_rear, tr.edie_ahead))
+        seg = (seg_lane, prev[0] + offset, v.t + offset, _edie_y(prev[2], prev[3], tr.edie_ahead),
+               _edie_y(v.y_front, v.y_rear, tr.edie_ahead))
+        if tr.backfill is True:
+            tr.backfill = (seg, v.t, v.y_front)
+        return seg
 
     def _check_crossing(self, v: VehicleState, prev: tuple, lane: int, offset: float, tr: _Track,
                         out: MeasureUpdate) -> None:
@@ -393,6 +406,32 @@ class TrafficMeasures:
         seg = self._late_backfill(tr, lane_c, tc, offset)
         if seg is not None:
             self._edie_add([v.id], [v.x], [seg])
+        self._redo_backfill(v, tr, lane_c, tc, speed_mps)
+
+    def _redo_backfill(self, v: VehicleState, tr: _Track, lane: int, tc: float, speed_mps: float) -> None:
+        """Re-extend a just-counted vehicle back to its region's entry at its average speed from its first own
+        point to the count line, when that is about its speed at the line (a steady vehicle): the pipeline took
+        the speed of its first half second of points, often too low far away (a near end that only moves when a
+        lower feature is found, a vehicle coming out from behind a sign gantry)."""
+        bf, tr.backfill = tr.backfill, None
+        if not isinstance(bf, tuple) or tr.family is not None or bf[0] not in tr.segs:
+            return
+        seg, t1, y1 = bf
+        sign = self.lanes.sign[lane]
+        run, dt = (self.count_y[lane] - y1) * sign, tc - t1
+        if run < REBACKFILL_MIN_RUN_M or dt <= 0.0 or not abs(run / dt / max(speed_mps, 1e-3) - 1.0) <= STEADY_TOL:
+            return
+        lane_s, w0, w1, entry, ya = seg
+        start = back_to_entry(w1, ya, entry, sign, run / dt,
+                              self.started_wall if self.started_wall is not None else -np.inf)
+        if start is None:
+            return
+        new = (lane_s, start[0], w1, start[1], ya)
+        self._edie_add([v.id], [v.x], [seg], sign=-1.0)
+        self._edie_add([v.id], [v.x], [new])
+        tr.segs[tr.segs.index(seg)] = new
+        if tr.covered_from == w0:
+            tr.covered_from = start[0]
 
     def _release_count(self, tr: _Track, out: MeasureUpdate) -> None:
         """Count a crossing held while its group was re-checked as a part of another vehicle: the check

@@ -395,6 +395,7 @@ class VisionPipeline:
         if entry is None:
             return
         v.trajectory = [(entry[0], x0, entry[1])] + list(traj)
+        v.backfilled = True
         self.stats["backfilled"] = self.stats.get("backfilled", 0) + 1
 
     def _drop_features(self, t: float) -> None:

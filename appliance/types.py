@@ -47,6 +47,9 @@ class VehicleState:
     # detection zone, not where a vehicle was lost: if it already straddles its count line (a receding
     # vehicle entering over the image's bottom edge, its front far ahead) it counts there
     entered: bool = False
+    # set on a vehicle's first report when the pipeline extended it back to its region's entry (the first point
+    # of its trajectory is that extrapolated entry)
+    backfilled: bool = False
     # along-road speed of its lowest features (m/s): the spot speed reported at count lines, presence loops and
     # in vehicle records (vy is its low part's, taking in parts higher up that move faster in projection); None: vy
     spot_vy: float | None = None

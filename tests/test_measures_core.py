@@ -607,6 +607,36 @@ def test_a_counted_vehicle_first_seen_inside_its_region_is_extended_back_to_its_
         assert time == pytest.approx(min(end, 3.0) - 0.72, abs=0.01)
 
 
+@pytest.mark.parametrize("slows", [False, True])
+def test_a_backfilled_vehicle_is_extended_again_at_its_speed_to_the_count_line(slows):
+    """The pipeline extended a vehicle first seen at y = 65.6 m (t = 2 s, 20 m/s) back to its region's entry
+    (80 m) at half its speed (its first points' near end lagged), from t = 1.28 s. Counted at the line (50 m)
+    at its steady 20 m/s, it is extended again at its average speed since: entry at 1.28 s, Edie's d(A) 60 m
+    and t(A) 3 s. One that slowed to 8 m/s on the way (a queue's tail) keeps the pipeline's extension: its speed
+    at the line is not the one it had when first seen."""
+    site = make_site(loops=[])
+    tm = TrafficMeasures(site)
+    tm.step(0.0, EPOCH, [])
+    t, y, vy, first = 2.0, 65.6, -20.0, True
+    while y > 19.0:
+        traj = [(2.0 - 14.4 / 10.0, -2.5, 80.0)] if first else None
+        tm.step(t, EPOCH + t, [VehicleState(3, t, -2.5, y, y + 4.5, 0, vy, 4.5, 8, trajectory=traj,
+                                            entered=True, backfilled=first)])
+        first = False
+        if slows and y < 58.0:
+            vy = -8.0
+        t += 0.04
+        y += vy * 0.04
+    (cr,) = tm.crossings[1]
+    dist, time = tm.edie.peek(EPOCH)[:, 0]
+    assert dist == pytest.approx(60.0, abs=0.2)
+    if slows:
+        assert cr.speed_kmh == pytest.approx(8.0 * 3.6, rel=0.05)
+        assert time == pytest.approx(1.44 + 7.6 / 20.0 + 38.0 / 8.0, abs=0.1)  # from 0.56 s, on to 20 m
+    else:
+        assert time == pytest.approx(3.0, abs=0.03)
+
+
 def test_a_group_on_a_counted_vehicle_never_takes_its_lane():
     """The second group on a vehicle (fewer features) comes first in the tracker's list, crosses the count
     line in the same frame, and then drifts over the lane line: the vehicle is counted by its own group,
