@@ -135,9 +135,12 @@ class Background:
         """True when the points pts are on a shadow that reaches the caster's points in the image: the
         road between the two, across the rows they share, is shadowed too (two vehicles side by side
         have sunlit road between them)."""
-        if len(caster) == 0 or not (self.is_shadow(img, pts) or (
-                len(pts) <= TOWARD_MAX_POINTS and self.is_shadow(img, _toward(pts, caster)))):
+        if len(caster) == 0:
             return False
+        if not self.is_shadow(img, pts):
+            box = _toward(pts, caster) if len(pts) <= TOWARD_MAX_POINTS else None
+            if box is None or not self.is_shadow(img, box):
+                return False
         r0 = int(max(pts[:, 1].min(), caster[:, 1].min()))
         r1 = int(np.ceil(min(pts[:, 1].max(), caster[:, 1].max()))) + 1
         if r1 - r0 < 1:
@@ -183,16 +186,16 @@ class Background:
         return bool(shadow_at(img, self.aligned, np.asarray(pts, np.float64), plain_ok))
 
 
-def _toward(pts: np.ndarray, caster: np.ndarray) -> np.ndarray:
+def _toward(pts: np.ndarray, caster: np.ndarray) -> np.ndarray | None:
     """pts and two points TOWARD_PX beyond them towards the caster, on their top and bottom rows (not past the
-    caster), for the shadow test's box (see TOWARD_MAX_POINTS)."""
+    caster), for the shadow test's box (see TOWARD_MAX_POINTS); None where the two overlap across the image."""
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     if caster[:, 0].max() < lo[0]:
         x = max(lo[0] - TOWARD_PX, float(caster[:, 0].max()))
     elif caster[:, 0].min() > hi[0]:
         x = min(hi[0] + TOWARD_PX, float(caster[:, 0].min()))
     else:
-        return pts
+        return None
     return np.vstack([pts, [[x, lo[1]], [x, hi[1]]]])
 
 

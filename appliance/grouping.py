@@ -1505,7 +1505,8 @@ class Grouper:
                   and joined is not None and joined(members, vid)):
                 return vid  # a tall vehicle's flank or top, wider in projection: the image between is its body
             tip = tr.n_now < self.p.min_features
-            if (gap <= (TIP_GAP_M if tip else SHADOW_GAP_M) and width <= (TIP_MAX_WIDTH_M if tip else SHADOW_MAX_WIDTH_M)
+            if (gap <= (TIP_GAP_M if tip else SHADOW_GAP_M)
+                    and width <= (TIP_MAX_WIDTH_M if tip else SHADOW_MAX_WIDTH_M)
                     and shadow is not None and shadow(members, vid)):
                 self._by_shadow = True
                 return vid

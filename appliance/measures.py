@@ -99,7 +99,7 @@ class _Track:
     # VehicleState.part_of): the arguments of its _count
     held_count: tuple | None = None
     # the pipeline's extension back to the region's entry (VehicleState.backfilled): True until its segment is
-    # made, then (that segment, capture time and front of its first own point), until it is counted
+    # made, then (that segment, capture time of its first own point), until it is counted
     backfill: bool | tuple | None = None
 
 
@@ -347,12 +347,13 @@ class TrafficMeasures:
         if seg_lane is not None and seg_lane not in tr.counted:
             self._check_crossing(v, prev, seg_lane, offset, tr, out)
         if seg_lane is None:
-            tr.backfill = None
+            if tr.backfill is True:
+                tr.backfill = None
             return None
         seg = (seg_lane, prev[0] + offset, v.t + offset, _edie_y(prev[2], prev[3], tr.edie_ahead),
                _edie_y(v.y_front, v.y_rear, tr.edie_ahead))
         if tr.backfill is True:
-            tr.backfill = (seg, v.t, v.y_front)
+            tr.backfill = (seg, v.t)
         return seg
 
     def _check_crossing(self, v: VehicleState, prev: tuple, lane: int, offset: float, tr: _Track,
@@ -410,28 +411,36 @@ class TrafficMeasures:
 
     def _redo_backfill(self, v: VehicleState, tr: _Track, lane: int, tc: float, speed_mps: float) -> None:
         """Re-extend a just-counted vehicle back to its region's entry at its average speed from its first own
-        point to the count line, when that is about its speed at the line (a steady vehicle): the pipeline took
-        the speed of its first half second of points, often too low far away (a near end that only moves when a
-        lower feature is found, a vehicle coming out from behind a sign gantry)."""
+        point to where Edie placed it at the count line, when that is about its speed at the line (a steady
+        vehicle): the pipeline took the speed of its first half second of points, often too low far away (a near
+        end that only moves when a lower feature is found, a vehicle coming out from behind a sign gantry)."""
         bf, tr.backfill = tr.backfill, None
         if not isinstance(bf, tuple) or tr.family is not None or bf[0] not in tr.segs:
             return
-        seg, t1, y1 = bf
-        sign = self.lanes.sign[lane]
-        run, dt = (self.count_y[lane] - y1) * sign, tc - t1
+        seg, t1 = bf
+        lane_s, w0, w1, _, ya = seg
+        c = self.count_y[lane]
+        at_line = _edie_y(c, c + v.y_rear - v.y_front, tr.edie_ahead)  # (a receding one's rear plus its ahead)
+        run, dt = (at_line - ya) * self.lanes.sign[lane_s], tc - t1
         if run < REBACKFILL_MIN_RUN_M or dt <= 0.0 or not abs(run / dt / max(speed_mps, 1e-3) - 1.0) <= STEADY_TOL:
             return
-        lane_s, w0, w1, entry, ya = seg
-        start = back_to_entry(w1, ya, entry, sign, run / dt,
-                              self.started_wall if self.started_wall is not None else -np.inf)
+        start = self._entry_start(lane_s, w1, ya, run / dt)
         if start is None:
             return
         new = (lane_s, start[0], w1, start[1], ya)
-        self._edie_add([v.id], [v.x], [seg], sign=-1.0)
+        self._edie_add([v.id], [np.nan], [seg], sign=-1.0)
         self._edie_add([v.id], [v.x], [new])
         tr.segs[tr.segs.index(seg)] = new
         if tr.covered_from == w0:
             tr.covered_from = start[0]
+
+    def _entry_start(self, lane: int, w: float, y: float, speed: float) -> tuple[float, float] | None:
+        """back_to_entry for a vehicle of lane at Edie place y at wall time w: when and where it entered the
+        lane's region at speed (never before the measures started)."""
+        sign = self.lanes.sign[lane]
+        ylo, yhi = self.region[lane]
+        return back_to_entry(w, y, ylo if sign > 0 else yhi, sign, speed,
+                             self.started_wall if self.started_wall is not None else -np.inf)
 
     def _release_count(self, tr: _Track, out: MeasureUpdate) -> None:
         """Count a crossing held while its group was re-checked as a part of another vehicle: the check
@@ -471,8 +480,7 @@ class TrafficMeasures:
         if (tr.first_y - entry) * sign < LATE_BACKFILL_MIN_GAP_M or run <= 0.0:
             return None
         w1 = tr.first_t + offset
-        start = back_to_entry(w1, tr.first_y, entry, sign, run / (tc - tr.first_t),
-                              self.started_wall if self.started_wall is not None else -np.inf)
+        start = self._entry_start(lane, w1, tr.first_y, run / (tc - tr.first_t))
         if start is None:
             return None
         w0, entry = start

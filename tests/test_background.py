@@ -372,4 +372,3 @@ def test_a_thin_shadows_tip_is_judged_with_its_body_towards_the_caster(monkeypat
     assert bg.is_attached_shadow(img, tip, caster)
     monkeypatch.setattr("appliance.background.TOWARD_MAX_POINTS", 0)
     assert not bg.is_attached_shadow(img, tip, caster)
-

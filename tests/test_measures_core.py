@@ -610,7 +610,7 @@ def test_a_counted_vehicle_first_seen_inside_its_region_is_extended_back_to_its_
 @pytest.mark.parametrize("slows", [False, True])
 def test_a_backfilled_vehicle_is_extended_again_at_its_speed_to_the_count_line(slows):
     """The pipeline extended a vehicle first seen at y = 65.6 m (t = 2 s, 20 m/s) back to its region's entry
-    (80 m) at half its speed (its first points' near end lagged), from t = 1.28 s. Counted at the line (50 m)
+    (80 m) at half its speed (its first points' near end lagged), from t = 0.56 s. Counted at the line (50 m)
     at its steady 20 m/s, it is extended again at its average speed since: entry at 1.28 s, Edie's d(A) 60 m
     and t(A) 3 s. One that slowed to 8 m/s on the way (a queue's tail) keeps the pipeline's extension: its speed
     at the line is not the one it had when first seen."""
@@ -635,6 +635,52 @@ def test_a_backfilled_vehicle_is_extended_again_at_its_speed_to_the_count_line(s
         assert time == pytest.approx(1.44 + 7.6 / 20.0 + 38.0 / 8.0, abs=0.1)  # from 0.56 s, on to 20 m
     else:
         assert time == pytest.approx(3.0, abs=0.03)
+
+
+def test_a_backfill_cut_at_the_first_frame_is_extended_again_to_the_region_entry_or_that_frame():
+    """First seen at 65.6 m at t = 0.3 s (20 m/s), the pipeline's half-speed extension stopped at the first
+    frame (t = 0, 68.6 m). Counted at its steady speed, it is extended again from the first frame, at 71.6 m:
+    Edie's d(A) 51.6 m, t(A) 2.58 s (not from 68.6 m: the region's entry is at 80 m)."""
+    site = make_site(loops=[])
+    tm = TrafficMeasures(site)
+    tm.step(0.0, EPOCH, [])
+    t, y, first = 0.3, 65.6, True
+    while y > 19.0:
+        traj = [(0.0, -2.5, 68.6)] if first else None
+        tm.step(t, EPOCH + t, [VehicleState(3, t, -2.5, y, y + 4.5, 0, -20.0, 4.5, 8, trajectory=traj,
+                                            entered=True, backfilled=first)])
+        first = False
+        t += 0.04
+        y -= 0.8
+    dist, time = tm.edie.peek(EPOCH)[:, 0]
+    assert dist == pytest.approx(51.6, abs=0.2)
+    assert time == pytest.approx(2.58, abs=0.03)
+
+
+def test_a_receding_vehicles_backfill_is_redone_at_the_speed_of_its_edie_place():
+    """A receding vehicle (lane 2: region 20 -> 80 m, count line 40 m) is followed by Edie at its rear plus its
+    first length (3 m). First seen with its rear at 25 m (t = 2 s, 20 m/s) and extended back at half speed, its
+    measured length then grows to 5 m (more of it shows): its front crosses the line sooner than its rear's
+    speed says. The extension is redone at the speed of its Edie place, the rear's: t(A) 3 s for d(A) 60 m
+    (at its front's 22 m/s, 2.96 s)."""
+    site = make_site(loops=[])
+    tm = TrafficMeasures(site)
+    tm.step(0.0, EPOCH, [])
+    t, first = 2.0, True
+    while True:
+        rear = 25.0 + 20.0 * (t - 2.0)
+        if rear + 3.0 > 81.0:
+            break
+        length = 3.0 + 2.0 * min(t - 2.0, 1.0)
+        traj = [(2.0 - 8.0 / 10.0, 2.5, 20.0)] if first else None  # its front (rear + 3) at the entry
+        tm.step(t, EPOCH + t, [VehicleState(4, t, 2.5, rear + length, rear, 0, 20.0, length, 8, trajectory=traj,
+                                            entered=True, backfilled=first)])
+        first = False
+        t += 0.04
+    assert len(tm.crossings[2]) == 1
+    dist, time = tm.edie.peek(EPOCH)[:, 1]
+    assert dist == pytest.approx(60.0, abs=0.2)
+    assert time == pytest.approx(3.0, abs=0.01)
 
 
 def test_a_group_on_a_counted_vehicle_never_takes_its_lane():

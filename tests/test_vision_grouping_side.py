@@ -1,5 +1,6 @@
 """Grouper on exact synthetic feature tracks in receding lanes: a vehicle's part seen in the next lane (its
-shadow or flank, whose features are born there) joins it; two vehicles side by side stay two."""
+shadow or flank, whose features are born there), or its long shadow's tip two lanes across, joins it; two
+vehicles side by side stay two."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ DT = 0.04
 COUNT_Y = 30.0
 
 
-def _run(objects: list[tuple[np.ndarray, float, int, int]], frames: int = 90,
+def _run(objects: list[tuple], frames: int = 90,
          lanes: tuple = (("receding", -3.5, 0.0), ("receding", 0.0, 3.5)), joined: bool | None = None,
          shadow: bool | None = None) -> list[list]:
     """objects: (road points (n, 2) at t=0, speed along Y, lane, first frame seen[, last]); on the road plane.
