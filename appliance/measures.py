@@ -98,9 +98,7 @@ class _Track:
     # a count-line crossing waiting while the group is re-checked as a part of another vehicle (see
     # VehicleState.part_of): the arguments of its _count
     held_count: tuple | None = None
-    # the pipeline's extension back to the region's entry (VehicleState.backfilled): True until its segment is
-    # made, then (that segment, capture time of its first own point), until it is counted
-    backfill: bool | tuple | None = None
+    backfilled: bool = False  # its first state is the pipeline's extension back to the region's entry
 
 
 @dataclass
@@ -315,7 +313,7 @@ class TrafficMeasures:
             tr = self.tracks[v.id] = _Track(v.t, v.t + offset, (v.t, v.x, v.y_front, v.y_rear, spot),
                                             LaneHistory(), raw, first_y=v.y_front, entered=v.entered,
                                             covered_from=v.t + offset, edie_ahead=max(v.y_front - v.y_rear, 0.0),
-                                            backfill=v.backfilled or None)
+                                            backfilled=v.backfilled)
             prev = None
         else:
             prev = tr.prev
@@ -347,14 +345,9 @@ class TrafficMeasures:
         if seg_lane is not None and seg_lane not in tr.counted:
             self._check_crossing(v, prev, seg_lane, offset, tr, out)
         if seg_lane is None:
-            if tr.backfill is True:
-                tr.backfill = None
             return None
-        seg = (seg_lane, prev[0] + offset, v.t + offset, _edie_y(prev[2], prev[3], tr.edie_ahead),
-               _edie_y(v.y_front, v.y_rear, tr.edie_ahead))
-        if tr.backfill is True:
-            tr.backfill = (seg, v.t)
-        return seg
+        return (seg_lane, prev[0] + offset, v.t + offset, _edie_y(prev[2], prev[3], tr.edie_ahead),
+                _edie_y(v.y_front, v.y_rear, tr.edie_ahead))
 
     def _check_crossing(self, v: VehicleState, prev: tuple, lane: int, offset: float, tr: _Track,
                         out: MeasureUpdate) -> None:
@@ -407,21 +400,23 @@ class TrafficMeasures:
         seg = self._late_backfill(tr, lane_c, tc, offset)
         if seg is not None:
             self._edie_add([v.id], [v.x], [seg])
-        self._redo_backfill(v, tr, lane_c, tc, speed_mps)
+        self._redo_backfill(v, tr, lane_c, tc, speed_mps, offset)
 
-    def _redo_backfill(self, v: VehicleState, tr: _Track, lane: int, tc: float, speed_mps: float) -> None:
+    def _redo_backfill(self, v: VehicleState, tr: _Track, lane: int, tc: float, speed_mps: float,
+                       offset: float) -> None:
         """Re-extend a just-counted vehicle back to its region's entry at its average speed from its first own
         point to where Edie placed it at the count line, when that is about its speed at the line (a steady
         vehicle): the pipeline took the speed of its first half second of points, often too low far away (a near
         end that only moves when a lower feature is found, a vehicle coming out from behind a sign gantry)."""
-        bf, tr.backfill = tr.backfill, None
-        if not isinstance(bf, tuple) or tr.family is not None or bf[0] not in tr.segs:
+        # its extension is its first segment, from its first state's time (if still kept, and its own)
+        if not tr.backfilled or tr.family is not None or not tr.segs or tr.segs[0][1] != tr.first_wall:
             return
-        seg, t1 = bf
+        tr.backfilled = False  # (once: a vehicle counted again at a staggered line keeps this one)
+        seg = tr.segs[0]
         lane_s, w0, w1, _, ya = seg
         c = self.count_y[lane]
         at_line = _edie_y(c, c + v.y_rear - v.y_front, tr.edie_ahead)  # (a receding one's rear plus its ahead)
-        run, dt = (at_line - ya) * self.lanes.sign[lane_s], tc - t1
+        run, dt = (at_line - ya) * self.lanes.sign[lane_s], tc - (w1 - offset)
         if run < REBACKFILL_MIN_RUN_M or dt <= 0.0 or not abs(run / dt / max(speed_mps, 1e-3) - 1.0) <= STEADY_TOL:
             return
         start = self._entry_start(lane_s, w1, ya, run / dt)
@@ -430,7 +425,7 @@ class TrafficMeasures:
         new = (lane_s, start[0], w1, start[1], ya)
         self._edie_add([v.id], [np.nan], [seg], sign=-1.0)
         self._edie_add([v.id], [v.x], [new])
-        tr.segs[tr.segs.index(seg)] = new
+        tr.segs[0] = new
         if tr.covered_from == w0:
             tr.covered_from = start[0]
 
