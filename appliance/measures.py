@@ -33,11 +33,17 @@ CARRY_MIN_SPEED = 1.0  # m/s; slower ones are not carried on
 # several features back to the region entry) is extended back at its speed from its first point to the count
 # line, if it entered the view there (first seen in its detection zone, not found again where one was lost)
 LATE_BACKFILL_MIN_GAP_M = 1.0
-# A vehicle the pipeline extended back to its region's entry is extended again when counted, at its average speed
-# from its first own point to the count line (over at least this run), if that is within STEADY_TOL of its speed
-# at the line: a queue's vehicle, slowing on its way, keeps the speed it had when first seen
+# A vehicle the pipeline extended back to its region's entry is extended again when counted, along the straight
+# line fitted to its own points up to the count line (over at least this run; Theil-Sen: a near end that jumped
+# ahead onto a shadow's tip and waited there for the vehicle does not tilt it), if that line's speed is within
+# STEADY_TOL of its speed at the line and its points lie within FIT_RESIDUAL_S of it (a steady vehicle): a queue's
+# vehicle, slowing on its way, keeps the speed it had when first seen
 REBACKFILL_MIN_RUN_M = 5.0
 STEADY_TOL = 0.15
+FIT_MIN_POINTS = 6
+FIT_PAIR_MIN_M = 2.0  # the slope is the median over pairs of points at least this far apart along the road
+FIT_MAX_POINTS = 200  # (evenly thinned to this many)
+FIT_RESIDUAL_S = 0.1  # 90th percentile of the points' time off the line
 # A group whose footprint starts on a bigger group's in its lane (from this far short of that one's start to its
 # length beyond it, at most this far) is a part of that vehicle: Edie counts one step of a vehicle once. (A
 # queued follower stays the length of the vehicle ahead and a standstill gap away from it.)
@@ -129,6 +135,27 @@ def _cut(seg: tuple, a: float, b: float) -> tuple | None:
         return seg
     f0, f1 = (a - w0) / (w1 - w0), (b - w0) / (w1 - w0)
     return lane, a, b, y0 + f0 * (y1 - y0), y0 + f1 * (y1 - y0)
+
+
+def _steady_line(pts: np.ndarray, sign: float, speed: float) -> tuple[float, float] | None:
+    """Theil-Sen line wall = a + b * y through a vehicle's points (wall, y), as (a, b), if it runs the lane's way
+    at within STEADY_TOL of speed and the points keep within FIT_RESIDUAL_S of it (see REBACKFILL_MIN_RUN_M)."""
+    if len(pts) < FIT_MIN_POINTS:
+        return None
+    if len(pts) > FIT_MAX_POINTS:
+        pts = pts[np.linspace(0, len(pts) - 1, FIT_MAX_POINTS).astype(int)]
+    w, y = pts[:, 0], pts[:, 1]
+    i, j = np.triu_indices(len(y), 1)
+    far = np.abs(y[j] - y[i]) >= FIT_PAIR_MIN_M
+    if not far.any():
+        return None
+    b = float(np.median((w[j] - w[i])[far] / (y[j] - y[i])[far]))
+    a = float(np.median(w - b * y))
+    if b * sign <= 0.0 or not abs(1.0 / (b * sign) / max(speed, 1e-3) - 1.0) <= STEADY_TOL:
+        return None
+    if np.percentile(np.abs(w - a - b * y), 90) > FIT_RESIDUAL_S:
+        return None
+    return a, b
 
 
 def _edie_y(front: float, rear: float, ahead: float) -> float:
@@ -404,23 +431,27 @@ class TrafficMeasures:
 
     def _redo_backfill(self, v: VehicleState, tr: _Track, lane: int, tc: float, speed_mps: float,
                        offset: float) -> None:
-        """Re-extend a just-counted vehicle back to its region's entry at its average speed from its first own
-        point to where Edie placed it at the count line, when that is about its speed at the line (a steady
-        vehicle): the pipeline took the speed of its first half second of points, often too low far away (a near
-        end that only moves when a lower feature is found, a vehicle coming out from behind a sign gantry)."""
+        """Re-extend a just-counted vehicle back to its region's entry along the line fitted to its own points
+        (see REBACKFILL_MIN_RUN_M), when that line's speed is about its speed at the line and the points follow
+        it (a steady vehicle): the pipeline took the speed of its first half second of points, often too low far
+        away (a near end that only moves when a lower feature is found, a vehicle coming out from behind a sign
+        gantry), and its first point may lie ahead of it (on its shadow's tip)."""
         # its extension is its first segment, from its first state's time (if still kept, and its own)
         if not tr.backfilled or tr.family is not None or not tr.segs or tr.segs[0][1] != tr.first_wall:
             return
         tr.backfilled = False  # (once: a vehicle counted again at a staggered line keeps this one)
         seg = tr.segs[0]
         lane_s, w0, w1, _, ya = seg
+        sign = self.lanes.sign[lane_s]
         c = self.count_y[lane]
         at_line = _edie_y(c, c + v.y_rear - v.y_front, tr.edie_ahead)  # (a receding one's rear plus its ahead)
-        run, dt = (at_line - ya) * self.lanes.sign[lane_s], tc - (w1 - offset)
-        if run < REBACKFILL_MIN_RUN_M or dt <= 0.0 or not abs(run / dt / max(speed_mps, 1e-3) - 1.0) <= STEADY_TOL:
+        pts = np.array([(w1, ya)] + [(sg[2], sg[4]) for sg in list(tr.segs)[1:]] + [(tc + offset, at_line)])
+        fit = _steady_line(pts, sign, speed_mps)
+        if fit is None or (at_line - ya) * sign < REBACKFILL_MIN_RUN_M:
             return
-        start = self._entry_start(lane_s, w1, ya, run / dt)
-        if start is None:
+        w_at, speed = fit[0] + fit[1] * ya, 1.0 / (fit[1] * sign)
+        start = self._entry_start(lane_s, w_at, ya, speed)
+        if start is None or start[0] >= w1:
             return
         new = (lane_s, start[0], w1, start[1], ya)
         self._edie_add([v.id], [np.nan], [seg], sign=-1.0)

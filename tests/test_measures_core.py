@@ -637,6 +637,30 @@ def test_a_backfilled_vehicle_is_extended_again_at_its_speed_to_the_count_line(s
         assert time == pytest.approx(3.0, abs=0.03)
 
 
+def test_a_backfill_from_a_near_end_ahead_of_its_vehicle_is_redone_along_its_fitted_line():
+    """A vehicle at a steady 20 m/s is first seen at t = 2 s with its near end on its shadow's tip, 2 m ahead of
+    its front (67.6 m): the near end waits there (it never goes back) until the front reaches it 0.1 s later.
+    The pipeline extended it back to its region's entry (80 m) at half speed. Its average speed from that first
+    point to the count line (50 m) reads 11 % slow, and extended at it the vehicle would enter 0.19 s early: t(A)
+    3.19 s. Along the line fitted to its points it enters when it did: d(A) 60 m, t(A) 3 s."""
+    site = make_site(loops=[])
+    tm = TrafficMeasures(site)
+    tm.step(0.0, EPOCH, [])
+    t, first = 2.0, True
+    while True:
+        y = min(65.6, 67.6 - 20.0 * (t - 2.0))
+        if y <= 19.0:
+            break
+        traj = [(2.0 - 14.4 / 10.0, -2.5, 80.0)] if first else None
+        tm.step(t, EPOCH + t, [VehicleState(3, t, -2.5, y, y + 4.5, 0, -20.0, 4.5, 8, trajectory=traj,
+                                            entered=True, backfilled=first)])
+        first = False
+        t += 0.04
+    dist, time = tm.edie.peek(EPOCH)[:, 0]
+    assert dist == pytest.approx(60.0, abs=0.2)
+    assert time == pytest.approx(3.0, abs=0.03)
+
+
 def test_a_backfill_cut_at_the_first_frame_is_extended_again_to_the_region_entry_or_that_frame():
     """First seen at 65.6 m at t = 0.3 s (20 m/s), the pipeline's half-speed extension stopped at the first
     frame (t = 0, 68.6 m). Counted at its steady speed, it is extended again from the first frame, at 71.6 m:
