@@ -424,7 +424,7 @@ class TrafficMeasures:
         self.crossings[lane_c].append(cr)
         tr.crossed.append(cr)
         out.crossings.append(cr)
-        seg = self._late_backfill(tr, lane_c, tc, offset)
+        seg = self._late_backfill(tr, lane_c, tc, speed_mps, offset)
         if seg is not None:
             self._edie_add([v.id], [v.x], [seg])
         self._redo_backfill(v, tr, lane_c, tc, speed_mps, offset)
@@ -492,11 +492,12 @@ class TrafficMeasures:
         if tr.crossed:
             out.vehicles.append(self._record(v.id, tr, v.t - tr.first_t))
 
-    def _late_backfill(self, tr: _Track, lane: int, tc: float, offset: float) -> tuple | None:
+    def _late_backfill(self, tr: _Track, lane: int, tc: float, speed_mps: float, offset: float) -> tuple | None:
         """The Edie segment from a just-counted vehicle's region entry to its first point, when it entered the
         view well inside its region and was not extended back when first reported (the pipeline does that only
-        for groups of several features: a small one may be a part of another vehicle; counted, it is not). Its
-        speed over that stretch is its average from its first point to the count line."""
+        for groups of several features: a small one may be a part of another vehicle; counted, it is not). It
+        runs along the line fitted to its points as far as the count line if it was steady there (see
+        REBACKFILL_MIN_RUN_M), else at its average speed from its first point to the count line."""
         if not tr.entered or tr.family is not None or tc <= tr.first_t:
             return None
         sign = self.lanes.sign[lane]
@@ -506,7 +507,12 @@ class TrafficMeasures:
         if (tr.first_y - entry) * sign < LATE_BACKFILL_MIN_GAP_M or run <= 0.0:
             return None
         w1 = tr.first_t + offset
-        start = self._entry_start(lane, w1, tr.first_y, run / (tc - tr.first_t))
+        pts = np.array([(w1, tr.first_y)] + [(sg[2], sg[4]) for sg in tr.segs] + [(tc + offset, self.count_y[lane])])
+        fit = _steady_line(pts, sign, speed_mps) if run >= REBACKFILL_MIN_RUN_M else None
+        start = None if fit is None else self._entry_start(lane, fit[0] + fit[1] * tr.first_y, tr.first_y,
+                                                           1.0 / (fit[1] * sign))
+        if start is None or start[0] >= w1:
+            start = self._entry_start(lane, w1, tr.first_y, run / (tc - tr.first_t))
         if start is None:
             return None
         w0, entry = start

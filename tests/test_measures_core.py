@@ -607,6 +607,23 @@ def test_a_counted_vehicle_first_seen_inside_its_region_is_extended_back_to_its_
         assert time == pytest.approx(min(end, 3.0) - 0.72, abs=0.01)
 
 
+def test_a_small_group_first_seen_ahead_of_its_vehicle_is_extended_back_along_its_fitted_line():
+    """A small group entering lane 1's region (80 -> 20 m) at t = 2 s at a steady 20 m/s is first seen at
+    2.72 s with its near end on its shadow's tip, 2 m ahead of its front (65.6 m), where it waits 0.1 s for the
+    front. Its average speed from that first point to the count line (50 m) reads 13 % slow: extended back at it,
+    it would enter 0.22 s early. Along the line fitted to its points: d(A) 60 m, t(A) 3 s."""
+    site = make_site(loops=[])
+    tm = TrafficMeasures(site)
+    tm.step(0.0, EPOCH, [])
+    for i in range(68, 126):  # 2.72 s to 5 s
+        t = i / 25
+        y = min(63.6, 80.0 - 20.0 * (t - 2.0))
+        tm.step(t, EPOCH + t, [VehicleState(3, t, -2.5, y, y + 4.5, 0, -20, 4.5, 2, entered=True)])
+    dist, time = tm.edie.peek(EPOCH)[:, 0]
+    assert dist == pytest.approx(60.0, abs=0.1)
+    assert time == pytest.approx(3.0, abs=0.03)
+
+
 @pytest.mark.parametrize("slows", [False, True])
 def test_a_backfilled_vehicle_is_extended_again_at_its_speed_to_the_count_line(slows):
     """The pipeline extended a vehicle first seen at y = 65.6 m (t = 2 s, 20 m/s) back to its region's entry
