@@ -105,6 +105,7 @@ class _Track:
     # VehicleState.part_of): the arguments of its _count
     held_count: tuple | None = None
     backfilled: bool = False  # its first state is the pipeline's extension back to the region's entry
+    from_entry: bool = False  # its Edie segments start at its region's entry (extended by the pipeline or counted)
 
 
 @dataclass
@@ -151,9 +152,9 @@ def _steady_line(pts: np.ndarray, sign: float, speed: float) -> tuple[float, flo
         return None
     b = float(np.median((w[j] - w[i])[far] / (y[j] - y[i])[far]))
     a = float(np.median(w - b * y))
-    if b * sign <= 0.0 or not abs(1.0 / (b * sign) / max(speed, 1e-3) - 1.0) <= STEADY_TOL:
+    if not np.isfinite(a) or b * sign <= 0.0 or not abs(1.0 / (b * sign) / max(speed, 1e-3) - 1.0) <= STEADY_TOL:
         return None
-    if np.percentile(np.abs(w - a - b * y), 90) > FIT_RESIDUAL_S:
+    if not np.percentile(np.abs(w - a - b * y), 90) <= FIT_RESIDUAL_S:
         return None
     return a, b
 
@@ -340,7 +341,7 @@ class TrafficMeasures:
             tr = self.tracks[v.id] = _Track(v.t, v.t + offset, (v.t, v.x, v.y_front, v.y_rear, spot),
                                             LaneHistory(), raw, first_y=v.y_front, entered=v.entered,
                                             covered_from=v.t + offset, edie_ahead=max(v.y_front - v.y_rear, 0.0),
-                                            backfilled=v.backfilled)
+                                            backfilled=v.backfilled, from_entry=v.backfilled)
             prev = None
         else:
             prev = tr.prev
@@ -424,12 +425,14 @@ class TrafficMeasures:
         self.crossings[lane_c].append(cr)
         tr.crossed.append(cr)
         out.crossings.append(cr)
-        seg = self._late_backfill(tr, lane_c, tc, speed_mps, offset)
+        c = self.count_y[lane_c]
+        at_line = _edie_y(c, c + v.y_rear - v.y_front, tr.edie_ahead)  # (a receding one's rear plus its ahead)
+        seg = self._late_backfill(tr, lane_c, tc, at_line, speed_mps, offset)
         if seg is not None:
             self._edie_add([v.id], [v.x], [seg])
-        self._redo_backfill(v, tr, lane_c, tc, speed_mps, offset)
+        self._redo_backfill(v, tr, tc, at_line, speed_mps, offset)
 
-    def _redo_backfill(self, v: VehicleState, tr: _Track, lane: int, tc: float, speed_mps: float,
+    def _redo_backfill(self, v: VehicleState, tr: _Track, tc: float, at_line: float, speed_mps: float,
                        offset: float) -> None:
         """Re-extend a just-counted vehicle back to its region's entry along the line fitted to its own points
         (see REBACKFILL_MIN_RUN_M), when that line's speed is about its speed at the line and the points follow
@@ -443,11 +446,11 @@ class TrafficMeasures:
         seg = tr.segs[0]
         lane_s, w0, w1, _, ya = seg
         sign = self.lanes.sign[lane_s]
-        c = self.count_y[lane]
-        at_line = _edie_y(c, c + v.y_rear - v.y_front, tr.edie_ahead)  # (a receding one's rear plus its ahead)
+        if (at_line - ya) * sign < REBACKFILL_MIN_RUN_M:
+            return
         pts = np.array([(w1, ya)] + [(sg[2], sg[4]) for sg in list(tr.segs)[1:]] + [(tc + offset, at_line)])
         fit = _steady_line(pts, sign, speed_mps)
-        if fit is None or (at_line - ya) * sign < REBACKFILL_MIN_RUN_M:
+        if fit is None:
             return
         w_at, speed = fit[0] + fit[1] * ya, 1.0 / (fit[1] * sign)
         start = self._entry_start(lane_s, w_at, ya, speed)
@@ -492,31 +495,36 @@ class TrafficMeasures:
         if tr.crossed:
             out.vehicles.append(self._record(v.id, tr, v.t - tr.first_t))
 
-    def _late_backfill(self, tr: _Track, lane: int, tc: float, speed_mps: float, offset: float) -> tuple | None:
+    def _late_backfill(self, tr: _Track, lane: int, tc: float, at_line: float, speed_mps: float, offset: float
+                       ) -> tuple | None:
         """The Edie segment from a just-counted vehicle's region entry to its first point, when it entered the
         view well inside its region and was not extended back when first reported (the pipeline does that only
         for groups of several features: a small one may be a part of another vehicle; counted, it is not). It
         runs along the line fitted to its points as far as the count line if it was steady there (see
-        REBACKFILL_MIN_RUN_M), else at its average speed from its first point to the count line."""
-        if not tr.entered or tr.family is not None or tc <= tr.first_t:
+        REBACKFILL_MIN_RUN_M), else at its average speed from its first point to where Edie places it at the
+        count line (at_line). Once: counted again at another lane's (staggered) line, it covers its entry already."""
+        if not tr.entered or tr.family is not None or tr.from_entry or tc <= tr.first_t:
             return None
         sign = self.lanes.sign[lane]
         ylo, yhi = self.region[lane]
         entry = ylo if sign > 0 else yhi
-        run = (self.count_y[lane] - tr.first_y) * sign
+        run = (at_line - tr.first_y) * sign
         if (tr.first_y - entry) * sign < LATE_BACKFILL_MIN_GAP_M or run <= 0.0:
             return None
         w1 = tr.first_t + offset
-        pts = np.array([(w1, tr.first_y)] + [(sg[2], sg[4]) for sg in tr.segs] + [(tc + offset, self.count_y[lane])])
-        fit = _steady_line(pts, sign, speed_mps) if run >= REBACKFILL_MIN_RUN_M else None
-        start = None if fit is None else self._entry_start(lane, fit[0] + fit[1] * tr.first_y, tr.first_y,
-                                                           1.0 / (fit[1] * sign))
+        start = None
+        if run >= REBACKFILL_MIN_RUN_M:
+            pts = np.array([(w1, tr.first_y)] + [(sg[2], sg[4]) for sg in tr.segs] + [(tc + offset, at_line)])
+            fit = _steady_line(pts, sign, speed_mps)
+            if fit is not None:
+                start = self._entry_start(lane, fit[0] + fit[1] * tr.first_y, tr.first_y, 1.0 / (fit[1] * sign))
         if start is None or start[0] >= w1:
             start = self._entry_start(lane, w1, tr.first_y, run / (tc - tr.first_t))
         if start is None:
             return None
         w0, entry = start
         tr.covered_from = min(tr.covered_from, w0)
+        tr.from_entry = True
         seg = (lane, w0, w1, entry, tr.first_y)
         if len(tr.segs) < MAX_EDIE_SEGMENTS:  # (a full deque would drop its latest segment for it)
             tr.segs.appendleft(seg)
@@ -528,7 +536,10 @@ class TrafficMeasures:
         """Vehicle ``vid`` is another group on vehicle ``other_id`` (their fronts crossed the count line
         together, the other one counted): Edie counts their distance and time once. Its segments over the
         time the other's family covered are taken back (as far as the period in progress), and from now on a
-        member's segment counts only for time its family has not covered."""
+        member's segment counts only for time its family has not covered. So is its extension back to its
+        region's entry (the pipeline's, see _redo_backfill), whenever it began, if the other's Edie segments
+        start at that entry too: the stretch where neither was seen is the other's to cover (a group first seen
+        crawling, the other's part or nothing on the road, was extended at its crawl for many seconds)."""
         other = self.tracks.get(other_id) or self.ended.get(other_id)
         if tr.family is not None or other is None:
             return
@@ -538,8 +549,14 @@ class TrafficMeasures:
             fam = self.families[fam_id] = _Family(other.covered_from, other.covered_until)
             other.family = fam_id
         tr.family = fam_id
+        start = tr.covered_from
+        if tr.backfilled and other.from_entry and tr.segs and tr.segs[0][1] == tr.first_wall:
+            ext = _cut(tr.segs.popleft(), -np.inf, fam.until)
+            if ext is not None:
+                self._edie_add([vid], [np.nan], [ext], sign=-1.0)
+            start = ext[2] if ext is not None else start  # (what it covers now starts at its first point)
         self._take_back(vid, tr, fam.start, fam.until)
-        fam.start = min(fam.start, tr.covered_from)
+        fam.start = min(fam.start, start)
         fam.until = max(fam.until, tr.covered_until)
 
     def _take_back(self, vid: int, tr: _Track, since: float, until: float) -> None:

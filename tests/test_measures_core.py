@@ -624,6 +624,79 @@ def test_a_small_group_first_seen_ahead_of_its_vehicle_is_extended_back_along_it
     assert time == pytest.approx(3.0, abs=0.03)
 
 
+def test_a_duplicates_extension_back_to_its_region_entry_is_taken_back_whole():
+    """Vehicle 3 enters lane 1's region (80 -> 20 m) at t = 2 s at 20 m/s and is first seen at 2.72 s; the
+    pipeline extends it back to its entry. Group 4, a part of it 1 m behind its front, is first seen then too,
+    but its first points crawled, and its extension back to the entry runs from t = 0.3 s at 5.5 m/s. It crosses
+    the count line 0.05 s after vehicle 3: a duplicate, whose distance and time are taken back where vehicle 3
+    covers them, and its extension too, whenever it began (vehicle 3's covers that stretch): d(A) 60 m, t(A) 3 s,
+    not 1.7 s and 9.4 m more."""
+    site = make_site(loops=[])
+    tm = TrafficMeasures(site)
+    tm.step(0.0, EPOCH, [])
+    for i in range(68, 126):  # 2.72 s to 5 s
+        t = i / 25
+        y = 80.0 - 20.0 * (t - 2.0)
+        first = i == 68
+        a = VehicleState(3, t, -2.5, y, y + 4.5, 0, -20.0, 4.5, 8, trajectory=[(2.0, -2.5, 80.0)] if first else None,
+                         entered=True, backfilled=first)
+        b = VehicleState(4, t, -2.5, y + 1.0, y + 3.0, 0, -20.0, 2.0, 4,
+                         trajectory=[(0.3, -2.5, 80.0)] if first else None, entered=True, backfilled=first)
+        tm.step(t, EPOCH + t, [a, b])
+    assert [c.vehicle_id for c in tm.crossings[1]] == [3]
+    dist, time = tm.edie.peek(EPOCH)[:, 0]
+    assert dist == pytest.approx(60.0, abs=0.1)
+    assert time == pytest.approx(3.0, abs=0.03)
+
+
+@pytest.mark.parametrize("case", ["joins before its vehicle is counted", "its vehicle is first seen later"])
+def test_a_duplicates_extension_stays_where_its_vehicle_does_not_cover_the_entry(case):
+    """Group 4, a part 1 m behind vehicle 3's front, is extended back by the pipeline to lane 1's entry (80 m,
+    t = 2 s, the truth). Vehicle 3 is not extended: it joins 3 at 3 s, before 3 is counted (a family's member
+    is not extended at its count), or 3 is first seen only at 3 s and was found again (not extended either).
+    The stretch only group 4's extension covers stays counted: t(A) 3 s."""
+    site = make_site(loops=[])
+    tm = TrafficMeasures(site)
+    tm.step(0.0, EPOCH, [])
+    join_at, other_first, entered = (3.0, 68, True) if case.startswith("joins") else (None, 75, False)
+    for i in range(68, 126):  # 2.72 s to 5 s
+        t = i / 25
+        y = 80.0 - 20.0 * (t - 2.0)
+        states = []
+        if i >= other_first:
+            states.append(VehicleState(3, t, -2.5, y, y + 4.5, 0, -20.0, 4.5, 8, entered=entered))
+        if join_at is None or t <= join_at:
+            j = join_at is not None and t >= join_at
+            states.append(VehicleState(4, t, -2.5, y + 1.0, y + 3.0, 0, -20.0, 2.0, 4,
+                                       trajectory=[(2.0, -2.5, 80.0)] if i == 68 else None, entered=True,
+                                       backfilled=i == 68, finished=j, joined=3 if j else None))
+        tm.step(t, EPOCH + t, states)
+    assert len(tm.crossings[1]) == 1
+    time = tm.edie.peek(EPOCH)[1, 0]
+    assert time == pytest.approx(3.0, abs=0.03)
+
+
+def test_a_small_group_counted_at_two_staggered_lines_is_extended_back_once():
+    """A small group first seen inside its region (80 -> 20 m, entered at 2 s at 20 m/s) changes from lane 1
+    (count line 50 m) to lane 3 (count line 45 m) and is counted at both lines: it is extended back to its
+    region's entry once, t(A) 3 s over both lanes (twice: 3.72 s)."""
+    lanes = [
+        {"id": 1, "direction": "approaching", "polygon_m": [[-5, 0], [0, 0], [0, 100], [-5, 100]],
+         "region_y_m": [20.0, 80.0], "count_y_m": 50.0},
+        {"id": 3, "direction": "approaching", "polygon_m": [[0, 0], [5, 0], [5, 100], [0, 100]],
+         "region_y_m": [20.0, 80.0], "count_y_m": 45.0},
+    ]
+    tm = TrafficMeasures(make_site(loops=[], lanes=lanes))
+    tm.step(0.0, EPOCH, [])
+    for i in range(68, 126):  # 2.72 s to 5 s
+        t = i / 25
+        y = 80.0 - 20.0 * (t - 2.0)
+        x = -2.5 if y > 49.0 else 2.5
+        tm.step(t, EPOCH + t, [VehicleState(3, t, x, y, y + 4.5, 0, -20, 4.5, 2, entered=True)])
+    assert [len(tm.crossings[ln]) for ln in (1, 3)] == [1, 1]
+    assert tm.edie.peek(EPOCH)[1].sum() == pytest.approx(3.0, abs=0.03)
+
+
 @pytest.mark.parametrize("slows", [False, True])
 def test_a_backfilled_vehicle_is_extended_again_at_its_speed_to_the_count_line(slows):
     """The pipeline extended a vehicle first seen at y = 65.6 m (t = 2 s, 20 m/s) back to its region's entry
