@@ -159,6 +159,12 @@ def _steady_line(pts: np.ndarray, sign: float, speed: float) -> tuple[float, flo
     return a, b
 
 
+def _extension(tr: _Track) -> tuple | None:
+    """A vehicle's extension back to its region's entry (the pipeline's, not yet redone): its first Edie segment,
+    from its first state's time, while it keeps it."""
+    return tr.segs[0] if tr.backfilled and tr.segs and tr.segs[0][1] == tr.first_wall else None
+
+
 def _edie_y(front: float, rear: float, ahead: float) -> float:
     """Where Edie places a vehicle (see _Track.edie_ahead): an approaching one's front, a receding one's rear
     plus ``ahead``."""
@@ -439,22 +445,15 @@ class TrafficMeasures:
         it (a steady vehicle): the pipeline took the speed of its first half second of points, often too low far
         away (a near end that only moves when a lower feature is found, a vehicle coming out from behind a sign
         gantry), and its first point may lie ahead of it (on its shadow's tip)."""
-        # its extension is its first segment, from its first state's time (if still kept, and its own)
-        if not tr.backfilled or tr.family is not None or not tr.segs or tr.segs[0][1] != tr.first_wall:
+        seg = _extension(tr)
+        if seg is None or tr.family is not None:
             return
         tr.backfilled = False  # (once: a vehicle counted again at a staggered line keeps this one)
-        seg = tr.segs[0]
         lane_s, w0, w1, _, ya = seg
-        sign = self.lanes.sign[lane_s]
-        if (at_line - ya) * sign < REBACKFILL_MIN_RUN_M:
+        if (at_line - ya) * self.lanes.sign[lane_s] < REBACKFILL_MIN_RUN_M:
             return
-        pts = np.array([(w1, ya)] + [(sg[2], sg[4]) for sg in list(tr.segs)[1:]] + [(tc + offset, at_line)])
-        fit = _steady_line(pts, sign, speed_mps)
-        if fit is None:
-            return
-        w_at, speed = fit[0] + fit[1] * ya, 1.0 / (fit[1] * sign)
-        start = self._entry_start(lane_s, w_at, ya, speed)
-        if start is None or start[0] >= w1:
+        start = self._fitted_start(lane_s, w1, ya, list(tr.segs)[1:], tc + offset, at_line, speed_mps)
+        if start is None:
             return
         new = (lane_s, start[0], w1, start[1], ya)
         self._edie_add([v.id], [np.nan], [seg], sign=-1.0)
@@ -462,6 +461,18 @@ class TrafficMeasures:
         tr.segs[0] = new
         if tr.covered_from == w0:
             tr.covered_from = start[0]
+
+    def _fitted_start(self, lane: int, w: float, y: float, segs: list[tuple], w_line: float, at_line: float,
+                      speed: float) -> tuple[float, float] | None:
+        """_entry_start along the steady line (see REBACKFILL_MIN_RUN_M) through a vehicle's points: its first at
+        Edie place y at wall time w, its segments' ends and the count line's (at_line at w_line); None if it was
+        not steady or the line reaches the entry only after w."""
+        sign = self.lanes.sign[lane]
+        fit = _steady_line(np.array([(w, y)] + [(sg[2], sg[4]) for sg in segs] + [(w_line, at_line)]), sign, speed)
+        if fit is None:
+            return None
+        start = self._entry_start(lane, fit[0] + fit[1] * y, y, 1.0 / (fit[1] * sign))
+        return start if start is not None and start[0] < w else None
 
     def _entry_start(self, lane: int, w: float, y: float, speed: float) -> tuple[float, float] | None:
         """back_to_entry for a vehicle of lane at Edie place y at wall time w: when and where it entered the
@@ -514,11 +525,8 @@ class TrafficMeasures:
         w1 = tr.first_t + offset
         start = None
         if run >= REBACKFILL_MIN_RUN_M:
-            pts = np.array([(w1, tr.first_y)] + [(sg[2], sg[4]) for sg in tr.segs] + [(tc + offset, at_line)])
-            fit = _steady_line(pts, sign, speed_mps)
-            if fit is not None:
-                start = self._entry_start(lane, fit[0] + fit[1] * tr.first_y, tr.first_y, 1.0 / (fit[1] * sign))
-        if start is None or start[0] >= w1:
+            start = self._fitted_start(lane, w1, tr.first_y, list(tr.segs), tc + offset, at_line, speed_mps)
+        if start is None:
             start = self._entry_start(lane, w1, tr.first_y, run / (tc - tr.first_t))
         if start is None:
             return None
@@ -550,7 +558,7 @@ class TrafficMeasures:
             other.family = fam_id
         tr.family = fam_id
         start = tr.covered_from
-        if tr.backfilled and other.from_entry and tr.segs and tr.segs[0][1] == tr.first_wall:
+        if other.from_entry and _extension(tr) is not None:
             ext = _cut(tr.segs.popleft(), -np.inf, fam.until)
             if ext is not None:
                 self._edie_add([vid], [np.nan], [ext], sign=-1.0)
