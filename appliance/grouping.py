@@ -11,6 +11,7 @@ is seen of its vehicle joins only where the image between the two is one body.
 from __future__ import annotations
 
 import bisect
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import NamedTuple
@@ -124,6 +125,19 @@ WATCH_SETTLE_S = 0.4
 LOST_KEEP_S = 60.0
 REFOUND_M = 6.0
 LOST_BRAKE_MPS2 = 8.0
+# ... and its near end no faster when reported than accelerating at LOST_ACCEL_MPS2 from the lost one's speed
+# takes it over the distance between (its near end may lie REFOUND_M behind the lost one's; plus
+# LOST_SPEED_SLACK_MPS for a young group's speed): a group on clutter where a slow one was lost, taken over by
+# a vehicle passing at speed, is that vehicle entering; taken for the lost one, it was never extended back to
+# its region's entry.
+LOST_ACCEL_MPS2 = 4.0
+LOST_SPEED_SLACK_MPS = 3.0
+# A vehicle lost within this long of its report (before the pipeline would release its first report: HOLD_S) is
+# remembered only for being found again past its count line (see Grouper._entered): most are groups on clutter
+# that a passing vehicle's features moved for a moment, over and over at the same spot (where vehicles come out
+# from under an overhead sign's edge: one every few seconds, each holding off for LOST_KEEP_S every vehicle
+# first seen there).
+LOST_MIN_REPORTED_S = 0.5
 RECHECK_S = 1.5  # a reported group is re-checked for being a fragment of another vehicle this long
 RECHECK_VOTES = 10  # ... and joins a vehicle only after matching it in this many frames (a frame without a
 # match is no evidence: the image's shadow test and the groups' extents flicker)
@@ -726,6 +740,7 @@ class Lost(NamedTuple):
     speed: float  # m/s
     x: float = float("nan")  # across the road
     front: float = float("nan")  # its front along the road
+    brief: bool = False  # lost within LOST_MIN_REPORTED_S of its report
 
 
 @dataclass
@@ -1545,7 +1560,8 @@ class Grouper:
             out.append(self._finish(tr, exited=False))
         elif tr.reported and tr.trajectory:  # a reported vehicle has a last state
             last = tr.last
-            self.lost.append(Lost(t, tr.lane_index, tr.trajectory[-1][2], abs(last.vy), last.x, last.y_front))
+            self.lost.append(Lost(t, tr.lane_index, tr.trajectory[-1][2], abs(last.vy), last.x, last.y_front,
+                                  t - tr.report_t < LOST_MIN_REPORTED_S))
 
     def _absorb(self, members: np.ndarray, host: int, host_members: np.ndarray, shade: bool | None = None) -> None:
         """A part's features become vehicle host's for good (linked to its features; with shade, marked as a
@@ -1591,10 +1607,11 @@ class Grouper:
 
     def _entered(self, tr: VehicleTrack, st: VehicleState, ahead: float) -> bool:
         """Whether a newly reported vehicle entered the view: first seen in its lane's detection zone, and
-        not where a reported vehicle of its lane lost in the last LOST_KEEP_S could be by then (found again,
-        it must not count again). Found again past its count line where it was lost short of it, it starts
-        from where it was lost (st.trajectory, whose points are its front ``ahead`` of its near end), so that
-        it counts there once: a vehicle whose features were all lost in its detection zone (hidden by one in
+        not where a reported vehicle of its lane lost in the last LOST_KEEP_S could be by then at the speed it has
+        (found again, it must not count again: see LOST_ACCEL_MPS2; one lost soon after its report only past its
+        count line, see LOST_MIN_REPORTED_S). Found again past its count line where it was lost short of it, it
+        starts from where it was lost (st.trajectory, whose points are its front ``ahead`` of its near end), so
+        that it counts there once: a vehicle whose features were all lost in its detection zone (hidden by one in
         the next lane, or standing in a queue) and found again only past its count line was never counted."""
         if tr.lane_index <= 0:
             return False
@@ -1602,10 +1619,12 @@ class Grouper:
         y0 = tr.trajectory[0][2]
         self.lost = [lo for lo in self.lost if st.t - lo.t <= LOST_KEEP_S]
         t0 = tr.trajectory[0][0]
-        found = [lo for lo in self.lost if lo.lane_index == tr.lane_index
-                 and _reachable(lz.sign * (y0 - lo.near), lo.speed, max(t0 - lo.t, 0.0))]
+        past = lz.sign * (y0 + ahead - lz.count_y) >= 0
+        found = [lo for lo in self.lost if lo.lane_index == tr.lane_index and (past or not lo.brief)
+                 and _reachable(lz.sign * (y0 - lo.near), lo.speed, max(t0 - lo.t, 0.0))
+                 and _could_reach_speed(abs(st.vy), lo.speed, lz.sign * (tr.trajectory[-1][2] - lo.near))]
         short = [lo for lo in found if lo.t < t0 and lz.sign * (lo.front - lz.count_y) < 0]
-        if short and lz.sign * (y0 + ahead - lz.count_y) >= 0:
+        if short and past:
             lo = max(short, key=lambda lo: lo.t)
             self.lost.remove(lo)
             st.trajectory = [(lo.t, lo.x, lo.front)] + (st.trajectory or [])
@@ -1677,6 +1696,13 @@ def _reachable(ahead: float, speed: float, dt: float) -> bool:
     stop_t = speed / LOST_BRAKE_MPS2
     least = speed * dt - 0.5 * LOST_BRAKE_MPS2 * dt * dt if dt < stop_t else 0.5 * speed * stop_t
     return least - REFOUND_M <= ahead <= speed * dt + REFOUND_M
+
+
+def _could_reach_speed(speed: float, lost_speed: float, travel: float) -> bool:
+    """Whether a vehicle lost at lost_speed (m/s) can move at ``speed`` once ``travel`` metres on from where it
+    was lost (see LOST_ACCEL_MPS2)."""
+    top = math.sqrt(lost_speed * lost_speed + 2.0 * LOST_ACCEL_MPS2 * max(travel + REFOUND_M, 0.0))
+    return speed <= top + LOST_SPEED_SLACK_MPS
 
 
 def _near_end_stopped_dead(tr: VehicleTrack, t: float) -> bool:

@@ -9,7 +9,7 @@ import pytest
 from appliance.config import MeasuresConfig, parse_site
 from appliance.grouping import GHOST, WATCHING, Grouper, VehicleTrack
 from appliance.types import VehicleState
-from appliance.zones import SiteZones
+from appliance.zones import LaneZones, SiteZones
 from tests.test_vision_pipeline import site_dict
 
 DT = 0.04
@@ -541,16 +541,20 @@ def test_road_texture_uncovered_behind_a_receding_vehicle_is_not_its_near_end():
     assert settled and all(abs(st.vy - 15.0) < 1.5 for st in settled), [round(st.vy, 1) for st in settled]
 
 
+def _lane_1_grouper() -> tuple[Grouper, LaneZones]:
+    """A grouper on the test site and its first lane's zones."""
+    site = parse_site(site_dict())
+    zones = SiteZones(site)
+    return Grouper(site.tracking, zones), zones.by_index(1)
+
+
 def test_a_vehicle_found_again_where_one_was_lost_has_not_entered_the_view():
     """The `entered` flag of a first report (the measures count a vehicle entering already over its count
     line): first seen in its lane's detection zone, but not within REFOUND_M of where a reported vehicle of
     its lane lost in the last LOST_KEEP_S could be by then (found again, it was counted before)."""
     from appliance.grouping import LOST_KEEP_S, REFOUND_M, Lost
 
-    site = parse_site(site_dict())
-    zones = SiteZones(site)
-    g = Grouper(site.tracking, zones)
-    lz = zones.by_index(1)
+    g, lz = _lane_1_grouper()
     y_in = 0.5 * (lz.detection_y[0] + lz.detection_y[1])
     tr = VehicleTrack(id=5, first_t=10.0, lane_index=1, trajectory=[(10.0, 0.0, y_in)])
 
@@ -576,6 +580,66 @@ def test_a_vehicle_found_again_where_one_was_lost_has_not_entered_the_view():
     assert not entered(outside, 10.0)
 
 
+def test_a_vehicle_passing_at_speed_where_a_slow_one_was_lost_has_entered_the_view():
+    """A new group first seen where a vehicle crawling at 1.8 m/s was lost 5 s before (clutter that a passing
+    vehicle's features moved for a moment) is that vehicle found again only if its near end moves no faster
+    than it could by accelerating from there (LOST_ACCEL_MPS2 over the distance on, its near end allowed
+    REFOUND_M behind; plus LOST_SPEED_SLACK_MPS): at 3 m/s it may be, at 20 m/s it has entered the view
+    (found again, it was never extended back to its region's entry)."""
+    from appliance.grouping import LOST_ACCEL_MPS2, LOST_SPEED_SLACK_MPS, REFOUND_M, Lost
+
+    g, lz = _lane_1_grouper()
+    sign = lz.sign
+    y_in = 0.5 * (lz.detection_y[0] + lz.detection_y[1])
+    # first seen 1 m behind where the slow one was lost, reported 2 m on from there
+    tr = VehicleTrack(id=5, first_t=10.0, lane_index=1,
+                      trajectory=[(10.0, 0.0, y_in - sign * 1.0), (10.3, 0.0, y_in + sign * 2.0)])
+
+    def entered(speed: float) -> bool:
+        y = y_in + sign * 2.0
+        return g._entered(tr, VehicleState(5, 10.3, 0.0, y, y - sign * 4.5, 0.0, sign * speed, 4.5, 6), 0.0)
+
+    g.lost = [Lost(5.0, 1, y_in, 1.8)]
+    top = (1.8 ** 2 + 2.0 * LOST_ACCEL_MPS2 * (2.0 + REFOUND_M)) ** 0.5 + LOST_SPEED_SLACK_MPS  # 11.1 m/s
+    assert not entered(3.0)
+    assert not entered(top - 0.1)
+    assert entered(top + 0.1)
+    assert entered(20.0)
+    assert len(g.lost) == 1  # still there for the vehicle itself
+
+
+@pytest.mark.parametrize("reported_s", [0.2, 1.0])
+@pytest.mark.parametrize("found_past_line", [True, False])
+def test_a_vehicle_lost_soon_after_its_report_is_found_again_only_past_its_count_line(reported_s,
+                                                                                      found_past_line):
+    """A reported vehicle whose features are all lost in its detection zone is remembered (it may be found
+    again). One lost within LOST_MIN_REPORTED_S of its report, mostly a group on clutter that a passing
+    vehicle moved for a moment (one at the same spot every few seconds held off every vehicle first seen
+    there), is found again only past its count line: a car at 8 m/s hidden by a van right after its report
+    and found again 2 s later past its line still counts there once, but a vehicle first seen where it stood
+    has entered the view."""
+    from appliance.grouping import LOST_MIN_REPORTED_S
+
+    g, lz = _lane_1_grouper()
+    sign, line = lz.sign, lz.count_y
+    y = lz.detection_y[0] + 0.5 if sign < 0 else lz.detection_y[1] - 0.5
+    lost = VehicleTrack(id=9, first_t=9.0, lane_index=1, trajectory=[(9.5, 0.0, y - sign * 4.0), (10.0, 0.0, y)])
+    lost.reported, lost.report_t = True, 10.0 - reported_s
+    lost.last = VehicleState(9, 10.0, 0.0, y, y - sign * 4.5, 0.0, sign * 8.0, 4.5, 6)
+    out: list[VehicleState] = []
+    g._lose(lost, 10.0, out)
+    assert not out and len(g.lost) == 1  # short of its exit: remembered, not finished
+    y0 = line + sign * 2.0 if found_past_line else y
+    tr = VehicleTrack(id=10, first_t=12.0, lane_index=1, trajectory=[(12.0, 0.0, y0), (12.04, 0.0, y0 + sign * 0.3)])
+    st = VehicleState(10, 12.08, 0.0, y0 + sign * 0.6, y0 + sign * 0.6 - sign * 4.5, 0.0, sign * 8.0, 4.5, 6)
+    st.trajectory = list(tr.trajectory)
+    entered = g._entered(tr, st, 0.0)
+    if found_past_line:  # found again past the line it was lost short of: it starts there and counts once
+        assert not entered and st.trajectory[0][0] == 10.0 and not g.lost
+    else:
+        assert entered == (reported_s < LOST_MIN_REPORTED_S)
+
+
 @pytest.mark.parametrize("found_past_line", [True, False])
 def test_a_vehicle_lost_in_its_detection_zone_and_found_again_past_its_count_line_counts_there_once(
         found_past_line):
@@ -584,10 +648,7 @@ def test_a_vehicle_lost_in_its_detection_zone_and_found_again_past_its_count_lin
     crosses the line and counts once. Found again short of the line, it crosses it on its own."""
     from appliance.grouping import Lost
 
-    site = parse_site(site_dict())
-    zones = SiteZones(site)
-    g = Grouper(site.tracking, zones)
-    lz = zones.by_index(1)
+    g, lz = _lane_1_grouper()
     sign, line = lz.sign, lz.count_y
     y_lost = lz.detection_y[0] + 0.5 if sign < 0 else lz.detection_y[1] - 0.5
     g.lost.append(Lost(8.0, 1, y_lost, 8.0, -1.7, y_lost))
