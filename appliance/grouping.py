@@ -855,6 +855,7 @@ class Grouper:
         self.foot = zones.camera  # (X, Y, height) of the camera, or None
         self.edge_rows = EDGE_ROWS_K * (params.search_radius_px + params.template_px // 2)
         self.k_max = zones.k_max
+        self.length_foot, self.length_k_max = zones.length_camera, zones.length_k_max  # see _ground_length
         self.k_top = zones.magnification(LIFTED_TOP_M) or self.k_max  # see LIFTED_TOP_M
         self.k_far = zones.magnification(ADOPT_FAR_MIN_HEIGHT_M) or np.inf  # see ADOPT_FAR_M
 
@@ -1319,15 +1320,16 @@ class Grouper:
                        near_y: float, length: float) -> float:
         """The vehicle's length on the road: where its far fitted features (usually a roofline, projected
         beyond the vehicle by its height) lie over the road, plus the part of the vehicle hidden beyond it as a
-        share of the length. Without the camera: the features' span."""
-        if self.foot is None or tr.lane_index <= 0:
+        share of the length. Without a camera (SiteZones.length_camera): the features' span."""
+        if self.length_foot is None or tr.lane_index <= 0:
             return length
         if sign > 0 and tr.fitted and tr.ground:
             # a receding vehicle is seen best as it enters, nearest the camera; its far end moves with it
             # from then on (a length that kept changing would add distance or time it did not travel)
             return max(tr.ground[0], tr.adopted)
-        behind = fit_places(members, age, s, self.fit, self.fit_vid, tr.id, near_y - self.foot[1], self.foot[1],
-                            self.k_max, FIT_FRAMES, FIT_TRAVEL_SD_M ** 2, FIT_NEIGHBOUR_M)
+        fy = self.length_foot[1]
+        behind = fit_places(members, age, s, self.fit, self.fit_vid, tr.id, near_y - fy, fy, self.length_k_max,
+                            FIT_FRAMES, FIT_TRAVEL_SD_M ** 2, FIT_NEIGHBOUR_M)
         # until some are fitted, or while a feature not yet fitted lies further (a fragment that just joined):
         # the last length, or at first the features' span; never short of a part it adopted (a top's rear edge
         # is the vehicle's rear: nothing of it is hidden beyond)

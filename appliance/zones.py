@@ -130,6 +130,13 @@ class SiteZones:
         # a vehicle's top is seen this many times further from the camera's foot than the road under it, at most
         k = self.magnification(TALLEST_M)
         self.k_max = MAX_GAIN if k is None else min(MAX_GAIN, k)
+        # Lengths are measured with heights undone also where the frame fits only a camera whose lens axis is off
+        # its centre (a crop: see placed_camera), which the tracker does not use: a length from the features'
+        # span reads a car's roof, seen far beyond it, as its rear (the real clip's cars 13-45 m long).
+        placed = placed_camera(H, self.width, self.height) if self.camera is None else None
+        self.length_camera = self.camera if placed is None else placed[:3]
+        k = _gain(self.length_camera, TALLEST_M)
+        self.length_k_max = MAX_GAIN if k is None else min(MAX_GAIN, k)
         self.lane_image = self._paint("polygon_px")  # 0 = no lane, else LaneZones.index
         self.detection_image = self._paint("detection_px")
         self.exit_image = self._paint("exit_px")
@@ -146,8 +153,7 @@ class SiteZones:
     def magnification(self, height_m: float) -> float | None:
         """How many times further from the camera's foot a point this high above the road is seen than the road
         under it; None without a camera, or with one not well above that height."""
-        h = self.camera[2] if self.camera is not None else 0.0
-        return h / (h - height_m) if h > height_m + 0.5 else None
+        return _gain(self.camera, height_m)
 
     def _paint(self, attr: str) -> np.ndarray:
         img = np.zeros((self.height, self.width), np.uint8)
@@ -193,6 +199,12 @@ class SiteZones:
 
     def by_index(self, index: int) -> LaneZones:
         return self.lanes[index - 1]
+
+
+def _gain(camera: tuple[float, float, float] | None, height_m: float) -> float | None:
+    """SiteZones.magnification for a camera (foot X, Y, height) or None."""
+    h = camera[2] if camera is not None else 0.0
+    return h / (h - height_m) if h > height_m + 0.5 else None
 
 
 MAX_FOCAL_DISAGREEMENT = 3.0  # see camera_from_homography
@@ -244,8 +256,8 @@ def placed_camera(H: Homography, width: int, height: int) -> tuple[float, float,
     (the centre column), or, where the column that fits exactly (on the middle row) lies more than CROP_SHARE
     of the width from the centre or no centred camera fits, the camera with its principal point at that column
     (a frame cropped left or right of the lens's axis; or an along-road scale somewhat out). None when neither
-    fits a camera on a pole or overpass. For the installer (roadwatch calibrate): the tracker undoes heights
-    only with a centred camera. (On the real clip, column 276 of 320, tracking with this camera counted worse:
+    fits a camera on a pole or overpass. For the installer (roadwatch calibrate) and for lengths
+    (SiteZones.length_camera): the tracker undoes heights only with a centred camera. (On the real clip, column 276 of 320, tracking with this camera counted worse:
     7 of 15 variants within 1 vehicle per lane, against 10 without heights; its lengths read 4.5-9 m for cars
     where the features' span reads 19-25.)"""
     col = _principal_column(H, width, height)

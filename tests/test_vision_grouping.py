@@ -9,7 +9,7 @@ import pytest
 from appliance.config import MeasuresConfig, parse_site
 from appliance.grouping import GHOST, WATCHING, Grouper, VehicleTrack
 from appliance.types import VehicleState
-from appliance.zones import LaneZones, SiteZones
+from appliance.zones import MAX_GAIN, LaneZones, SiteZones
 from tests.test_vision_pipeline import site_dict
 
 DT = 0.04
@@ -20,15 +20,19 @@ SETTLING = 0.6
 
 
 def _run(objects: list[tuple], frames: int = 90, lanes=None,
-         shadow_seen=None, night: bool = False, joined: bool | None = None, shadow_at=None) -> dict[int, list]:
+         shadow_seen=None, night: bool = False, joined: bool | None = None, shadow_at=None,
+         uncentred: bool = False) -> dict[int, list]:
     """objects: (ground points (n, 2) at t=0, speed along Y, lane, first frame seen, height above road[, frame
     from which they are lost]).
     shadow_seen(frame): what the image's shadow test answers in that frame (default: no image test), for any
     points or only for a caster's shadow where shadow_at(image points) holds; joined: what the image test of
-    two groups being one body answers (default: no image test)."""
+    two groups being one body answers (default: no image test); uncentred: the frame fits its camera only with
+    the lens's axis off its centre (a crop), so that the tracker works without heights (see SiteZones.camera)."""
     site = parse_site(site_dict() if lanes is None else site_dict(lanes=lanes))
     zones = SiteZones(site)
     cx, cy, ch = zones.camera
+    if uncentred:
+        zones.camera, zones.k_max = None, MAX_GAIN
     g = Grouper(site.tracking, zones)
     g.lights_only = night
     n = site.tracking.max_features
@@ -350,6 +354,24 @@ def test_reported_length_is_the_vehicle_on_the_road_not_its_roof_projected_beyon
     assert np.all(np.abs(lengths - length) < 0.3), lengths
     # the far end moves with the vehicle: the rear is the front plus that length
     assert np.all(np.abs(np.array([st.y_rear - st.y_front for st in states]) - lengths) < 1e-6)
+
+
+def test_an_uncentred_frames_lengths_are_measured_with_heights_undone():
+    """A frame whose calibration fits a camera only with its lens's axis off the frame's centre (a crop: the real
+    clip's) is tracked without heights, but lengths are measured with that camera (SiteZones.length_camera): a car
+    seen from its bumper up its bonnet and windscreen to its roof's rear edge (one group without heights: no gap
+    between its features) is then reported within 0.3 m of its 3.6 m. From the features' span (as before) it read
+    7.5-9.3 m, its roof projected beyond it (the real clip's cars read 13-45 m)."""
+    front, length = 44.0, 3.6
+    slices = [(_box(-2.5, -1.0, front + u * 0.84 * length - 0.1, front + u * 0.84 * length + 0.1, 3, 20 + i),
+               -15.0, 1, 0, 1.45 * u) for i, u in enumerate(np.linspace(0.0, 1.0, 9))]
+    seen = _run(slices, frames=60, uncentred=True)
+    assert len(seen) == 1, _firsts(seen)
+    states = [st for st in next(iter(seen.values())) if not st.finished and st.y_front < 25.0]
+    assert states, seen
+    spans = np.array([st.y_rear - st.y_front for st in states])
+    lengths = np.array([st.length for st in states])
+    assert np.all(np.abs(lengths - length) < 0.3), (lengths, spans)
 
 
 def test_a_receding_cars_length_takes_in_the_bonnet_hidden_beyond_its_windscreen():
