@@ -128,15 +128,12 @@ class SiteZones:
             )
         self.camera = camera_from_homography(H, self.width, self.height)
         # a vehicle's top is seen this many times further from the camera's foot than the road under it, at most
-        k = self.magnification(TALLEST_M)
-        self.k_max = MAX_GAIN if k is None else min(MAX_GAIN, k)
-        # Lengths are measured with heights undone also where the frame fits only a camera whose lens axis is off
-        # its centre (a crop: see placed_camera), which the tracker does not use: a length from the features'
-        # span reads a car's roof, seen far beyond it, as its rear (the real clip's cars 13-45 m long).
-        placed = placed_camera(H, self.width, self.height) if self.camera is None else None
-        self.length_camera = self.camera if placed is None else placed[:3]
-        k = _gain(self.length_camera, TALLEST_M)
-        self.length_k_max = MAX_GAIN if k is None else min(MAX_GAIN, k)
+        self.k_max = _k_max(self.camera)
+        # lengths undo heights with an off-centre camera too (see placed_camera); the tracker does not
+        self.length_camera = self.camera
+        if self.camera is None and (placed := placed_camera(H, self.width, self.height)) is not None:
+            self.length_camera = placed[:3]
+        self.length_k_max = _k_max(self.length_camera)
         self.lane_image = self._paint("polygon_px")  # 0 = no lane, else LaneZones.index
         self.detection_image = self._paint("detection_px")
         self.exit_image = self._paint("exit_px")
@@ -151,8 +148,7 @@ class SiteZones:
         self.lane_extent_by_index = np.array([[0.0, 0.0]] + [list(lz.y_extent) for lz in self.lanes])
 
     def magnification(self, height_m: float) -> float | None:
-        """How many times further from the camera's foot a point this high above the road is seen than the road
-        under it; None without a camera, or with one not well above that height."""
+        """_gain of the tracker's camera."""
         return _gain(self.camera, height_m)
 
     def _paint(self, attr: str) -> np.ndarray:
@@ -202,9 +198,16 @@ class SiteZones:
 
 
 def _gain(camera: tuple[float, float, float] | None, height_m: float) -> float | None:
-    """SiteZones.magnification for a camera (foot X, Y, height) or None."""
+    """How many times further from the camera's foot (camera: foot X, Y, height) a point this high above the road
+    is seen than the road under it; None without a camera, or with one not well above that height."""
     h = camera[2] if camera is not None else 0.0
     return h / (h - height_m) if h > height_m + 0.5 else None
+
+
+def _k_max(camera: tuple[float, float, float] | None) -> float:
+    """How many times further a vehicle's top is seen than the road under it, at most (see MAX_GAIN)."""
+    k = _gain(camera, TALLEST_M)
+    return MAX_GAIN if k is None else min(MAX_GAIN, k)
 
 
 MAX_FOCAL_DISAGREEMENT = 3.0  # see camera_from_homography
@@ -257,9 +260,9 @@ def placed_camera(H: Homography, width: int, height: int) -> tuple[float, float,
     of the width from the centre or no centred camera fits, the camera with its principal point at that column
     (a frame cropped left or right of the lens's axis; or an along-road scale somewhat out). None when neither
     fits a camera on a pole or overpass. For the installer (roadwatch calibrate) and for lengths
-    (SiteZones.length_camera): the tracker undoes heights only with a centred camera. (On the real clip, column 276 of 320, tracking with this camera counted worse:
-    7 of 15 variants within 1 vehicle per lane, against 10 without heights; its lengths read 4.5-9 m for cars
-    where the features' span reads 19-25.)"""
+    (SiteZones.length_camera): the tracker undoes heights only with a centred camera. (On the real clip, column
+    276 of 320, tracking with this camera counted worse: 7 of 15 variants within 1 vehicle per lane, against 10
+    without heights.)"""
     col = _principal_column(H, width, height)
     cropped = col is not None and abs(col[0] - (width - 1) / 2.0) > CROP_SHARE * width
     cam = None if cropped else camera_from_homography(H, width, height)

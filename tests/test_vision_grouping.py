@@ -9,7 +9,7 @@ import pytest
 from appliance.config import MeasuresConfig, parse_site
 from appliance.grouping import GHOST, WATCHING, Grouper, VehicleTrack
 from appliance.types import VehicleState
-from appliance.zones import MAX_GAIN, LaneZones, SiteZones
+from appliance.zones import LaneZones, SiteZones
 from tests.test_vision_pipeline import site_dict
 
 DT = 0.04
@@ -17,6 +17,7 @@ RECEDING_BESIDE_APPROACHING = (("receding", -3.5, 0.0), ("approaching", 0.0, 3.5
 LEFT_OF_CAMERA = (("approaching", -7.0, -3.5), ("approaching", -3.5, 0.0))  # lane 2 runs beside the camera's foot
 COUNT_Y = 30.0
 SETTLING = 0.6
+UNCENTRED_SHIFT_PX = 96
 
 
 def _run(objects: list[tuple], frames: int = 90, lanes=None,
@@ -27,12 +28,10 @@ def _run(objects: list[tuple], frames: int = 90, lanes=None,
     shadow_seen(frame): what the image's shadow test answers in that frame (default: no image test), for any
     points or only for a caster's shadow where shadow_at(image points) holds; joined: what the image test of
     two groups being one body answers (default: no image test); uncentred: the frame fits its camera only with
-    the lens's axis off its centre (a crop), so that the tracker works without heights (see SiteZones.camera)."""
-    site = parse_site(site_dict() if lanes is None else site_dict(lanes=lanes))
+    the lens's axis off its centre (a crop, see _site), so that the tracker works without heights."""
+    site = parse_site(_site(lanes, uncentred))
     zones = SiteZones(site)
-    cx, cy, ch = zones.camera
-    if uncentred:
-        zones.camera, zones.k_max = None, MAX_GAIN
+    cx, cy, ch = SiteZones(parse_site(_site(lanes))).camera
     g = Grouper(site.tracking, zones)
     g.lights_only = night
     n = site.tracking.max_features
@@ -71,6 +70,15 @@ def _run(objects: list[tuple], frames: int = 90, lanes=None,
         for st in states:
             seen.setdefault(st.id, []).append(st)
     return seen
+
+
+def _site(lanes=None, uncentred: bool = False) -> dict:
+    """The test site; uncentred: its calibration's image points UNCENTRED_SHIFT_PX to the left, as in a frame
+    cropped from a wider picture (the lens's axis 96 px left of its centre): no centred camera fits it."""
+    d = site_dict() if lanes is None else site_dict(lanes=lanes)
+    if uncentred:
+        d["calibration"]["image_px"] = [[x - UNCENTRED_SHIFT_PX, y] for x, y in d["calibration"]["image_px"]]
+    return d
 
 
 def _counted(seen: dict[int, list], receding: bool = False) -> int:
@@ -358,10 +366,13 @@ def test_reported_length_is_the_vehicle_on_the_road_not_its_roof_projected_beyon
 
 def test_an_uncentred_frames_lengths_are_measured_with_heights_undone():
     """A frame whose calibration fits a camera only with its lens's axis off the frame's centre (a crop: the real
-    clip's) is tracked without heights, but lengths are measured with that camera (SiteZones.length_camera): a car
-    seen from its bumper up its bonnet and windscreen to its roof's rear edge (one group without heights: no gap
-    between its features) is then reported within 0.3 m of its 3.6 m. From the features' span (as before) it read
-    7.5-9.3 m, its roof projected beyond it (the real clip's cars read 13-45 m)."""
+    clip's) is tracked without heights, but lengths are measured with that camera (SiteZones.length_camera,
+    placed_camera's): a car seen from its bumper up its bonnet and windscreen to its roof's rear edge (one group
+    without heights: no gap between its features) is then reported within 0.3 m of its 3.6 m. From the features'
+    span (as before) it read 7.5-9.3 m, its roof projected beyond it (the real clip's cars read 13-45 m)."""
+    zones, centred = SiteZones(parse_site(_site(uncentred=True))), SiteZones(parse_site(_site()))
+    assert zones.camera is None and zones.length_camera is not None
+    assert np.allclose(zones.length_camera, centred.camera, atol=0.05), (zones.length_camera, centred.camera)
     front, length = 44.0, 3.6
     slices = [(_box(-2.5, -1.0, front + u * 0.84 * length - 0.1, front + u * 0.84 * length + 0.1, 3, 20 + i),
                -15.0, 1, 0, 1.45 * u) for i, u in enumerate(np.linspace(0.0, 1.0, 9))]

@@ -207,8 +207,8 @@ def check(
             notes.append(f"a camera about {placed[2]:.1f} m above the road fits only with its lens's axis at column "
                          f"{placed[3]:.0f}, not the frame's centre ({(w - 1) / 2:.0f}): a frame cropped from a wider "
                          "picture (or an along-road scale somewhat out). The tracker works without vehicle heights, "
-                         "so roofs may be reported apart from their vehicles and lengths read long; the uncropped "
-                         "picture avoids that")
+                         "so roofs may be reported apart from their vehicles (lengths are measured with this camera); "
+                         "the uncropped picture avoids that")
         else:
             notes.append("no camera on a pole or overpass fits this calibration (an along-road scale far out?): the "
                          "tracker works without vehicle heights, so roofs may be reported apart from their vehicles "
