@@ -127,7 +127,6 @@ class SiteZones:
                 )
             )
         self.camera = camera_from_homography(H, self.width, self.height)
-        # a vehicle's top is seen this many times further from the camera's foot than the road under it, at most
         self.k_max = _k_max(self.camera)
         # lengths undo heights with an off-centre camera too (see placed_camera); the tracker does not
         self.length_camera = self.camera
