@@ -290,15 +290,12 @@ ENTER_ROWS_K = 2.0
 # its speed settles and would hold the near end back. (Settled features may be that slow: a truck's bumper
 # under a low camera moves at half the speed of its box's top in projection.)
 SLOW_REP_SHARE = 0.5
-# Two vehicles of a lane may be one group for a while (a corner on the road between them, new and so not yet
-# known to stand, linked both) and come apart again. The id, with its count and its near end (which never goes
-# backwards), goes to the part holding most of the group's features; where an approaching vehicle's group comes
-# apart into two parts moving at one speed (their median speeds within FRONT_SPEED_TOL), each big enough to be
-# reported, it stays with the part holding the near end, the front. (By most features, the follower took the id
-# as the leader left the view at the image's bottom, its corners going, and with it the leader's near end, held
-# where the leader's had been: the follower was never counted.) A part seen higher up moves faster in projection,
-# by its height's magnification (1.1-1.8): a vehicle's raised part coming apart from its low front is left to
-# the rules for parts. Receding vehicles are counted by their far end, so the rule is not theirs.
+# A vehicle's id goes to the part of its group holding most features. Where an approaching vehicle's group comes
+# apart into two parts of its own features moving at one speed (median speeds within FRONT_SPEED_TOL), the front
+# one holding its near end and big enough to be reported, they are two vehicles joined for a while (a corner on
+# the road between them, new and so not yet known to stand, linked both): the id, with its count and its near
+# end, stays with the front (see Grouper._front_keeps_id). A raised part moves faster in projection, by its
+# height's magnification (1.1-1.8), and is left to the rules for parts.
 FRONT_SPEED_TOL = 0.05
 
 
@@ -945,24 +942,20 @@ class Grouper:
         return (tr.n_now < self.p.min_features and t - tr.report_t <= RECHECK_S and host is not None
                 and host.lane_index == tr.lane_index)
 
-    def _assign_ids(self, live: np.ndarray, reported: np.ndarray, age: np.ndarray, s: np.ndarray
-                    ) -> dict[int, np.ndarray]:
+    def _assign_ids(self, live: np.ndarray, reported: np.ndarray) -> dict[int, np.ndarray]:
         """Each component's vehicle id. A reported vehicle's id goes before a group's not yet reported (that
         one is provisional) in the component holding most of its features: a crawling car left with few corners
         that links up with a small group found on it, or on the car behind, stays that car, its count and its
-        time in the region going on; a single corner of it in a bigger group does not take its id away. (An
-        approaching vehicle that came apart into two of one speed: see _front_keeps_id.)"""
-        before = self.fvid.copy()
+        time in the region going on; a single corner of it in a bigger group does not take its id away."""
         order, starts, vids, self.next_vid = assign_ids(live, self.labels, self.fvid, self.next_vid, reported)
-        groups = {int(v): order[a:b] for v, a, b in zip(vids, starts[:-1], starts[1:])}
-        self._front_keeps_id(groups, before, age, s, set(reported.tolist()))
-        return groups
+        return {int(v): order[a:b] for v, a, b in zip(vids, starts[:-1], starts[1:])}
 
-    def _front_keeps_id(self, groups: dict[int, np.ndarray], before: np.ndarray, age: np.ndarray, s: np.ndarray,
-                        reported: set[int]) -> None:
-        """An approaching vehicle whose group came apart into two parts moving at one speed (FRONT_SPEED_TOL),
-        each big enough to be reported, keeps its id in the part holding its near end, its front: the id's count
-        and near end are its front's (see FRONT_SPEED_TOL). Updates groups and fvid."""
+    def _front_keeps_id(self, groups: dict[int, np.ndarray], before: np.ndarray, s: np.ndarray,
+                        age: np.ndarray) -> None:
+        """After _assign_ids (before: the ids it started from): a reported approaching vehicle whose near end's
+        feature is now in another group of mostly its own features, big enough to be reported and moving at its
+        rest's speed (see FRONT_SPEED_TOL), takes that group back; the rest gets that group's id."""
+        touched: set[int] = set()
         for vid in list(groups):
             tr = self.tracks.get(vid)
             if tr is None or not tr.reported or tr.lane_index <= 0 or self.zones.by_index(tr.lane_index).sign > 0:
@@ -971,14 +964,20 @@ class Grouper:
             if f < 0 or age[f] == 0 or before[f] != vid or self.fvid[f] == vid:
                 continue  # its near end's feature is gone, or still its own
             other = int(self.fvid[f])
-            if other in reported or len(groups[other]) < self.min_report:
+            front, rest = groups[other], groups[vid]
+            front_own, rest_own = (m[~(self.shade[m] | self.lifted[m])] for m in (front, rest))
+            other_tr = self.tracks.get(other)
+            if vid in touched or other in touched or (other_tr is not None and other_tr.reported):
                 continue
-            v_front, v_rest = (float(np.median(np.abs(s[groups[g], 3]))) for g in (other, vid))
+            if len(front_own) < self.min_report or not len(rest_own) \
+                    or 2 * np.count_nonzero(before[front] == vid) <= len(front):
+                continue  # too small to be a vehicle, or mostly another group's
+            v_front, v_rest = (float(np.median(np.abs(s[m, 3]))) for m in (front_own, rest_own))
             if min(v_front, v_rest) < MOVING_MPS or abs(v_front / v_rest - 1.0) > FRONT_SPEED_TOL:
                 continue
-            a, b = groups[vid], groups[other]
-            self.fvid[a], self.fvid[b] = other, vid
-            groups[vid], groups[other] = b, a
+            self.fvid[rest], self.fvid[front] = other, vid
+            groups[vid], groups[other] = front, rest
+            touched.update((vid, other))
 
     def step(self, t: float, s: np.ndarray, px: np.ndarray, lane: np.ndarray, alive: np.ndarray, age: np.ndarray,
              is_shadow: Callable[[np.ndarray, np.ndarray | None], bool] | None = None,
@@ -1005,7 +1004,9 @@ class Grouper:
                         p.segmentation_m, p.segmentation_per_m, self.late)
             reported = np.array(sorted(vid for vid, tr in self.tracks.items() if tr.reported), dtype=np.int64)
             self._components(t, live, s, age, reported)
-            groups = self._assign_ids(live, reported, age, s)
+            before = self.fvid.copy()
+            groups = self._assign_ids(live, reported)
+            self._front_keeps_id(groups, before, s, age)
 
         def seen(host: int) -> np.ndarray:
             """A host's slots but its tops seen off the lanes (they lie over whatever follows it in the image)."""

@@ -711,35 +711,43 @@ def test_new_features_between_two_queued_vehicles_do_not_join_them(gap_m: float,
 
 
 @pytest.mark.parametrize("case, kept_by_front", [
-    ("one speed", True), ("rear part raised", False), ("front standing", False), ("front too small", False),
-    ("front another vehicle's", False)])
+    ("one speed", True), ("rear part raised", False), ("both crawling", False), ("front standing", False),
+    ("front too small", False), ("front mostly another group's", False), ("front another vehicle's", False),
+    ("receding", False)])
 def test_an_approaching_vehicle_come_apart_keeps_its_id_in_its_front_where_both_parts_move_at_one_speed(
         case, kept_by_front):
-    """Vehicle 7's group (a car and the car behind it, joined for a while) comes apart: its near end's feature is
-    in the smaller part, the front (6 features), the other part has 10. At one speed the two are two vehicles:
-    the id, with the count and the near end, stays with the front, the car behind gets the new id and its own
-    count. A rear part moving faster in projection is a raised part of the front; a near end on something
-    standing, a front part too small to be a vehicle, or one that is another reported vehicle's, is no reason
-    to move the id: the part holding most of the features keeps it."""
-    g, _ = _lane_1_grouper()
+    """Vehicle 7's group (a car and the car behind it, joined for a while) has come apart: its near end's
+    feature is in the smaller part, the front (6 features), which assign_ids gave id 9; the other part, 10
+    features, kept 7. At one speed the two are two vehicles: 7, with its count and near end, goes with the
+    front and the car behind becomes 9. A rear part moving faster in projection is a raised part of the front;
+    parts crawling below MOVING_MPS, a near end on something standing, a front too small to be a vehicle, one
+    mostly of another group's features or another reported vehicle's, and a receding vehicle (counted by its far
+    end) keep the ids assign_ids gave."""
+    if case == "receding":
+        site = parse_site(_site(RECEDING_BESIDE_APPROACHING))
+        g = Grouper(site.tracking, SiteZones(site))
+    else:
+        g, _ = _lane_1_grouper()
     n = g.p.max_features
     s, age = np.zeros((n, 4)), np.full(n, 20, np.int32)
     front, rest = np.arange(6), np.arange(6, 16)
-    s[front, 1], s[rest, 1] = np.linspace(10.0, 12.0, 6), np.linspace(19.0, 25.0, 10)
-    s[front, 3], s[rest, 3] = -15.0, -15.0 * (1.3 if case == "rear part raised" else 1.0)
-    if case == "front standing":
-        s[front, 3] = 0.0
     if case == "front too small":
         front, rest = np.arange(2), np.arange(2, 16)
+    s[front, 1], s[rest, 1] = np.linspace(10.0, 12.0, len(front)), np.linspace(19.0, 25.0, len(rest))
+    speed = {"both crawling": -2.0}.get(case, -15.0)
+    s[front, 3], s[rest, 3] = speed, speed * (1.3 if case == "rear part raised" else 1.0)
+    if case == "front standing":
+        s[front, 3] = 0.0
     before = np.full(n, -1, np.int64)
     before[:16] = 7
+    if case == "front mostly another group's":
+        before[front[1:]] = 9
     g.tracks[7] = VehicleTrack(id=7, first_t=0.0, lane_index=1, reported=True, near_slot=0)
     g.tracks[9] = VehicleTrack(id=9, first_t=0.0, lane_index=1, reported=case == "front another vehicle's")
     g.fvid[:] = -1
-    g.fvid[rest], g.fvid[front] = 7, 9  # as assign_ids leaves it: the id with most of the features
+    g.fvid[rest], g.fvid[front] = 7, 9  # as assign_ids left them: 7 where most of its features are
     groups = {7: rest.copy(), 9: front.copy()}
-    reported = {7, 9} if case == "front another vehicle's" else {7}
-    g._front_keeps_id(groups, before, age, s, reported)
+    g._front_keeps_id(groups, before, s, age)
     expect_7, expect_9 = (front, rest) if kept_by_front else (rest, front)
     assert np.array_equal(groups[7], expect_7) and np.array_equal(groups[9], expect_9), groups
     assert (g.fvid[expect_7] == 7).all() and (g.fvid[expect_9] == 9).all()
