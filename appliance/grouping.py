@@ -953,8 +953,8 @@ class Grouper:
     def _front_keeps_id(self, groups: dict[int, np.ndarray], before: np.ndarray, s: np.ndarray,
                         age: np.ndarray) -> None:
         """After _assign_ids (before: the ids it started from): a reported approaching vehicle whose near end's
-        feature is now in another group of mostly its own features, big enough to be reported and moving at its
-        rest's speed (see FRONT_SPEED_TOL), takes that group back; the rest gets that group's id."""
+        feature is now in a new group of mostly its own features, big enough to be reported and moving at its
+        rest's speed (see FRONT_SPEED_TOL), takes that group back; the rest gets the new id."""
         touched: set[int] = set()
         for vid in list(groups):
             tr = self.tracks.get(vid)
@@ -964,11 +964,10 @@ class Grouper:
             if f < 0 or age[f] == 0 or before[f] != vid or self.fvid[f] == vid:
                 continue  # its near end's feature is gone, or still its own
             other = int(self.fvid[f])
+            if other in self.tracks or other in touched:
+                continue  # another group's id (the rest would take over its history), or one given out already
             front, rest = groups[other], groups[vid]
             front_own, rest_own = (m[~(self.shade[m] | self.lifted[m])] for m in (front, rest))
-            other_tr = self.tracks.get(other)
-            if vid in touched or other in touched or (other_tr is not None and other_tr.reported):
-                continue
             if len(front_own) < self.min_report or not len(rest_own) \
                     or 2 * np.count_nonzero(before[front] == vid) <= len(front):
                 continue  # too small to be a vehicle, or mostly another group's
