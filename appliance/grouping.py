@@ -946,7 +946,8 @@ class Grouper:
         """Each component's vehicle id. A reported vehicle's id goes before a group's not yet reported (that
         one is provisional) in the component holding most of its features: a crawling car left with few corners
         that links up with a small group found on it, or on the car behind, stays that car, its count and its
-        time in the region going on; a single corner of it in a bigger group does not take its id away."""
+        time in the region going on; a single corner of it in a bigger group does not take its id away. (Step then
+        hands an approaching vehicle that came apart at one speed back its front: _front_keeps_id.)"""
         order, starts, vids, self.next_vid = assign_ids(live, self.labels, self.fvid, self.next_vid, reported)
         return {int(v): order[a:b] for v, a, b in zip(vids, starts[:-1], starts[1:])}
 
@@ -956,9 +957,9 @@ class Grouper:
         feature is now in a new group of mostly its own features, big enough to be reported and moving at its
         rest's speed (see FRONT_SPEED_TOL), takes that group back; the rest gets the new id."""
         touched: set[int] = set()
-        for vid in list(groups):
+        for vid in groups:  # only existing keys' values change below
             tr = self.tracks.get(vid)
-            if tr is None or not tr.reported or tr.lane_index <= 0 or self.zones.by_index(tr.lane_index).sign > 0:
+            if tr is None or not tr.reported or tr.lane_index <= 0 or self.zones.sign_by_index[tr.lane_index] > 0:
                 continue
             f = tr.near_slot
             if f < 0 or age[f] == 0 or before[f] != vid or self.fvid[f] == vid:
