@@ -297,6 +297,14 @@ SLOW_REP_SHARE = 0.5
 # end, stays with the front (see Grouper._front_keeps_id). A raised part moves faster in projection, by its
 # height's magnification (1.1-1.8), and is left to the rules for parts.
 FRONT_SPEED_TOL = 0.05
+# Two vehicles of one lane reported over RECHECK_S ago (past the re-checks for parts) whose groups have run into
+# one, the one ahead KEEP_APART_M or more ahead of the other's near end, both moving at about one speed (their near
+# ends' speeds within KEEP_APART_SPEED_TOL: the follower's may be a raised corner's, faster in projection), are two
+# cars that features between them linked (a sign on the leader's roof, seen over the follower's bonnet): given the
+# follower's id, the leader would vanish uncounted and the follower be counted at the leader's time. Each keeps
+# its own features (see Grouper._keep_apart). A part run into its vehicle lies behind the vehicle's near end.
+KEEP_APART_M = 7.0
+KEEP_APART_SPEED_TOL = 0.2
 
 
 @njit(cache=True)
@@ -979,6 +987,45 @@ class Grouper:
             groups[vid], groups[other] = front, rest
             touched.update((vid, other))
 
+    def _keep_apart(self, t: float, groups: dict[int, np.ndarray], before: np.ndarray, s: np.ndarray) -> None:
+        """After _assign_ids (before: the ids it started from): an established vehicle whose features went into the
+        group of an established vehicle behind it takes them back (see KEEP_APART_M), with the group's features new
+        to both that lie nearer its own along the road."""
+        for vid, tr in list(self.tracks.items()):
+            if vid in groups or not tr.reported or tr.lane_index <= 0 or tr.last is None or not tr.trajectory:
+                continue
+            own = np.flatnonzero(before == vid)
+            own = own[self.fvid[own] != vid]  # its features alive now (the dead keep its id)
+            if not len(own):
+                continue
+            ids, counts = np.unique(self.fvid[own], return_counts=True)
+            w = int(ids[np.argmax(counts)])
+            o = self.tracks.get(w)
+            if w < 0 or o is None or w not in groups or not o.reported or o.last is None or not o.trajectory:
+                continue
+            if o.lane_index != tr.lane_index or min(t - tr.report_t, t - o.report_t) <= RECHECK_S:
+                continue
+            va, vb = abs(tr.steady_vy(tr.last.vy)), abs(o.steady_vy(o.last.vy))
+            if min(va, vb) < MOVING_MPS or abs(va / vb - 1.0) > KEEP_APART_SPEED_TOL:
+                continue
+            ya, yb = tr.trajectory[-1][2], o.trajectory[-1][2]
+            sign = self.zones.sign_by_index[tr.lane_index]
+            if (ya - yb) * sign < KEEP_APART_M:
+                continue  # it is not the one ahead, or not by a vehicle's length
+            m = groups[w]
+            mine = before[m] == vid
+            theirs = before[m] == w
+            new = ~(mine | theirs)
+            if new.any() and mine.any() and theirs.any():
+                y = s[m, 1]
+                da = np.abs(y[new][:, None] - y[mine][None, :]).min(axis=1)
+                db = np.abs(y[new][:, None] - y[theirs][None, :]).min(axis=1)
+                mine[np.flatnonzero(new)[da < db]] = True
+            if not mine.any() or mine.all():
+                continue
+            groups[vid], groups[w] = m[mine], m[~mine]
+            self.fvid[m[mine]] = vid
+
     def step(self, t: float, s: np.ndarray, px: np.ndarray, lane: np.ndarray, alive: np.ndarray, age: np.ndarray,
              is_shadow: Callable[[np.ndarray, np.ndarray | None], bool] | None = None,
              is_joined: Callable[..., bool] | None = None,
@@ -1007,6 +1054,7 @@ class Grouper:
             before = self.fvid.copy()
             groups = self._assign_ids(live, reported)
             self._front_keeps_id(groups, before, s, age)
+            self._keep_apart(t, groups, before, s)
 
         def seen(host: int) -> np.ndarray:
             """A host's slots but its tops seen off the lanes (they lie over whatever follows it in the image)."""

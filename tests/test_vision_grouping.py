@@ -1201,3 +1201,54 @@ def test_a_receding_vehicle_entering_at_the_image_bottom_starts_once_its_rear_is
     assert in_view_t is not None and born.min() < born[0], "the car must enter front first"
     assert first is not None, "the car is never reported"
     assert first.trajectory[0][0] >= in_view_t - DT - 1e-9, (first.trajectory[0], in_view_t)
+
+
+@pytest.mark.parametrize("case, kept_apart", [
+    ("two cars", True),
+    ("the follower vanished", False),
+    ("leader newly reported", False),
+    ("near ends close", False),
+    ("speeds differ", False),
+    ("crawling", False),
+    ("other lane", False),
+])
+def test_an_established_vehicle_run_into_the_one_behind_keeps_its_features(case, kept_apart):
+    """Vehicles 7 (the leader, near end at 10 m) and 9 (12 m behind), both reported over RECHECK_S ago, have run
+    into one group: assign_ids gave it 9, the one with more features. At one speed and a vehicle's length apart
+    they are two cars a feature between them linked: 7 gets its own features back, with the new feature between
+    them that lies nearer it. Not where the one that vanished is the follower (a part behind, run into its
+    vehicle), nor where either is new (re-checks judge a new group), the two are closer than KEEP_APART_M,
+    their speeds differ (a raised part), they crawl, or they are of different lanes."""
+    from appliance.grouping import KEEP_APART_M, RECHECK_S
+
+    g, _ = _lane_1_grouper()
+    n = g.p.max_features
+    t = 10.0
+    s = np.zeros((n, 4))
+    a, b, new = np.arange(5), np.arange(5, 13), np.array([13, 14])
+    s[a, 1], s[b, 1], s[new, 1] = np.linspace(10.0, 13.0, 5), np.linspace(22.0, 26.0, 8), (15.0, 20.0)
+    speed = {"crawling": -2.0}.get(case, -15.0)
+    s[:15, 3] = speed
+    before = np.full(n, -1, np.int64)
+    before[a], before[b] = 7, 9
+    lead_y, follow_y = (10.0, 10.0 + 0.8 * KEEP_APART_M) if case == "near ends close" else (10.0, 22.0)
+    if case == "the follower vanished":
+        before[a], before[b] = 9, 7  # 7 is the follower now; 9 keeps the group
+        lead_y, follow_y = follow_y, lead_y
+    vy_7 = speed * (1.3 if case == "speeds differ" else 1.0)
+    for vid, y, vy, rep in ((7, lead_y, vy_7, t - 0.5 if case == "leader newly reported" else t - 2 * RECHECK_S),
+                            (9, follow_y, speed, t - 2 * RECHECK_S)):
+        tr = g.tracks[vid] = VehicleTrack(id=vid, first_t=0.0, lane_index=1, reported=True, report_t=rep)
+        tr.trajectory = [(t - 0.04 * (12 - i), 0.0, y - vy * 0.04 * (12 - i)) for i in range(12)]
+        tr.last = VehicleState(vid, t - 0.04, 0.0, y, y + 4.5, 0.0, vy, 4.5, 6)
+    if case == "other lane":
+        g.tracks[7].lane_index = 2
+    g.fvid[:] = -1
+    g.fvid[:15] = 9  # as assign_ids left them: one group, 9's
+    groups = {9: np.arange(15)}
+    g._keep_apart(t, groups, before, s)
+    if kept_apart:
+        assert np.array_equal(groups[7], [0, 1, 2, 3, 4, 13]) and np.array_equal(groups[9], [5, 6, 7, 8, 9, 10, 11, 12, 14])
+        assert (g.fvid[groups[7]] == 7).all() and (g.fvid[groups[9]] == 9).all()
+    else:
+        assert list(groups) == [9] and np.array_equal(groups[9], np.arange(15)) and (g.fvid[:15] == 9).all()
