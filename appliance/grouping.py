@@ -302,7 +302,8 @@ FRONT_SPEED_TOL = 0.05
 # ends' speeds within KEEP_APART_SPEED_TOL: the follower's may be a raised corner's, faster in projection), are two
 # cars that features between them linked (a sign on the leader's roof, seen over the follower's bonnet): given the
 # follower's id, the leader would vanish uncounted and the follower be counted at the leader's time. Each keeps
-# its own features (see Grouper._keep_apart). A part run into its vehicle lies behind the vehicle's near end.
+# its own features (see Grouper._keep_apart). Approaching lanes only: there a part run into its vehicle lies
+# behind the vehicle's near end (a raised part is projected away from the camera), never ahead.
 KEEP_APART_M = 7.0
 KEEP_APART_SPEED_TOL = 0.2
 
@@ -992,8 +993,9 @@ class Grouper:
         group of an established vehicle behind it takes them back (see KEEP_APART_M), with the group's features new
         to both that lie nearer its own along the road."""
         for vid, tr in list(self.tracks.items()):
-            if vid in groups or not tr.reported or tr.lane_index <= 0 or tr.last is None or not tr.trajectory:
-                continue
+            if vid in groups or not tr.reported or tr.lane_index <= 0 or tr.last is None or not tr.trajectory \
+                    or self.zones.sign_by_index[tr.lane_index] > 0:
+                continue  # (a receding vehicle's raised parts lie ahead of its near end)
             own = np.flatnonzero(before == vid)
             own = own[self.fvid[own] != vid]  # its features alive now (the dead keep its id)
             if not len(own):
@@ -1008,10 +1010,8 @@ class Grouper:
             va, vb = abs(tr.steady_vy(tr.last.vy)), abs(o.steady_vy(o.last.vy))
             if min(va, vb) < MOVING_MPS or abs(va / vb - 1.0) > KEEP_APART_SPEED_TOL:
                 continue
-            ya, yb = tr.trajectory[-1][2], o.trajectory[-1][2]
-            sign = self.zones.sign_by_index[tr.lane_index]
-            if (ya - yb) * sign < KEEP_APART_M:
-                continue  # it is not the one ahead, or not by a vehicle's length
+            if tr.trajectory[-1][2] > o.trajectory[-1][2] - KEEP_APART_M:
+                continue  # it is not the one ahead (nearer the camera), or not by a vehicle's length
             m = groups[w]
             mine = before[m] == vid
             theirs = before[m] == w
