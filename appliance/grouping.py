@@ -297,13 +297,13 @@ SLOW_REP_SHARE = 0.5
 # end, stays with the front (see Grouper._front_keeps_id). A raised part moves faster in projection, by its
 # height's magnification (1.1-1.8), and is left to the rules for parts.
 FRONT_SPEED_TOL = 0.05
-# Two vehicles of one lane reported over RECHECK_S ago (past the re-checks for parts) whose groups have run into
-# one, the one ahead KEEP_APART_M or more ahead of the other's near end, both moving at about one speed (their near
-# ends' speeds within KEEP_APART_SPEED_TOL: the follower's may be a raised corner's, faster in projection), are two
-# cars that features between them linked (a sign on the leader's roof, seen over the follower's bonnet): given the
-# follower's id, the leader would vanish uncounted and the follower be counted at the leader's time. Each keeps
-# its own features (see Grouper._keep_apart). Approaching lanes only: there a part run into its vehicle lies
-# behind the vehicle's near end (a raised part is projected away from the camera), never ahead.
+# Two vehicles of an approaching lane reported over RECHECK_S ago (past the re-checks for parts) whose groups have
+# run into one, the leader's near end KEEP_APART_M or more ahead of the follower's, both moving at about one speed
+# (near ends' speeds within KEEP_APART_SPEED_TOL: the follower's may be a raised corner's, faster in projection),
+# are two cars that features between them linked (a sign on the leader's roof, seen over the follower's bonnet):
+# given the follower's id, the leader would vanish (uncounted if short of its line) and the follower be counted
+# at the leader's time. Each keeps its own features (see Grouper._keep_apart), unless the follower, its height
+# undone, lies on the leader (its raised part). (On a receding lane a raised part lies ahead of its vehicle.)
 KEEP_APART_M = 7.0
 KEEP_APART_SPEED_TOL = 0.2
 
@@ -956,7 +956,8 @@ class Grouper:
         one is provisional) in the component holding most of its features: a crawling car left with few corners
         that links up with a small group found on it, or on the car behind, stays that car, its count and its
         time in the region going on; a single corner of it in a bigger group does not take its id away. (Step then
-        hands an approaching vehicle that came apart at one speed back its front: _front_keeps_id.)"""
+        hands an approaching vehicle that came apart at one speed back its front, _front_keeps_id, and one that ran
+        into the vehicle behind it its features, _keep_apart.)"""
         order, starts, vids, self.next_vid = assign_ids(live, self.labels, self.fvid, self.next_vid, reported)
         return {int(v): order[a:b] for v, a, b in zip(vids, starts[:-1], starts[1:])}
 
@@ -989,13 +990,15 @@ class Grouper:
             touched.update((vid, other))
 
     def _keep_apart(self, t: float, groups: dict[int, np.ndarray], before: np.ndarray, s: np.ndarray) -> None:
-        """After _assign_ids (before: the ids it started from): an established vehicle whose features went into the
-        group of an established vehicle behind it takes them back (see KEEP_APART_M), with the group's features new
-        to both that lie nearer its own along the road."""
+        """After _assign_ids and _front_keeps_id (before: the ids they started from): an established vehicle of an
+        approaching lane whose id vanished into the group of one KEEP_APART_M or more behind it takes its features
+        back (see KEEP_APART_M), with the group's features of no reported vehicle that lie nearer its own along the
+        road. (The pair graph links the two again next frame; this parts them again.)"""
+        reported = [v for v, o in self.tracks.items() if o.reported]
         for vid, tr in list(self.tracks.items()):
             if vid in groups or not tr.reported or tr.lane_index <= 0 or tr.last is None or not tr.trajectory \
                     or self.zones.sign_by_index[tr.lane_index] > 0:
-                continue  # (a receding vehicle's raised parts lie ahead of its near end)
+                continue
             own = np.flatnonzero(before == vid)
             own = own[self.fvid[own] != vid]  # its features alive now (the dead keep its id)
             if not len(own):
@@ -1010,18 +1013,23 @@ class Grouper:
             va, vb = abs(tr.steady_vy(tr.last.vy)), abs(o.steady_vy(o.last.vy))
             if min(va, vb) < MOVING_MPS or abs(va / vb - 1.0) > KEEP_APART_SPEED_TOL:
                 continue
-            if tr.trajectory[-1][2] > o.trajectory[-1][2] - KEEP_APART_M:
-                continue  # it is not the one ahead (nearer the camera), or not by a vehicle's length
+            ya, yb = tr.trajectory[-1][2], o.trajectory[-1][2]
+            if ya > yb - KEEP_APART_M:
+                continue  # not the one ahead (nearer the camera), or not by a vehicle's length
+            if vb / va > LEVEL_K and self.foot is not None and tr.carries(*self._on_road(o.last.x, yb, vb / va)):
+                continue
             m = groups[w]
             mine = before[m] == vid
+            if np.count_nonzero(mine) < self.min_report:
+                continue
             theirs = before[m] == w
-            new = ~(mine | theirs)
-            if new.any() and mine.any() and theirs.any():
+            new = ~(mine | theirs | np.isin(before[m], reported))
+            if new.any() and theirs.any():
                 y = s[m, 1]
                 da = np.abs(y[new][:, None] - y[mine][None, :]).min(axis=1)
                 db = np.abs(y[new][:, None] - y[theirs][None, :]).min(axis=1)
                 mine[np.flatnonzero(new)[da < db]] = True
-            if not mine.any() or mine.all():
+            if mine.all():
                 continue
             groups[vid], groups[w] = m[mine], m[~mine]
             self.fvid[m[mine]] = vid

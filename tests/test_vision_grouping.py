@@ -1205,10 +1205,13 @@ def test_a_receding_vehicle_entering_at_the_image_bottom_starts_once_its_rear_is
 
 @pytest.mark.parametrize("case, kept_apart", [
     ("two cars", True),
+    ("a third vehicle's feature between them", True),
     ("the follower vanished", False),
     ("leader newly reported", False),
     ("near ends close", False),
     ("speeds differ", False),
+    ("follower a raised part of the leader", False),
+    ("leader left with too few features", False),
     ("crawling", False),
     ("other lane", False),
     ("receding", False),
@@ -1216,11 +1219,12 @@ def test_a_receding_vehicle_entering_at_the_image_bottom_starts_once_its_rear_is
 def test_an_established_vehicle_run_into_the_one_behind_keeps_its_features(case, kept_apart):
     """Vehicles 7 (the leader, near end at 10 m) and 9 (12 m behind), both reported over RECHECK_S ago, have run
     into one group: assign_ids gave it 9, the one with more features. At one speed and a vehicle's length apart
-    they are two cars a feature between them linked: 7 gets its own features back, with the new feature between
-    them that lies nearer it. Not where the one that vanished is the follower (a part behind, run into its
-    vehicle), nor where either is new (re-checks judge a new group), the two are closer than KEEP_APART_M,
-    their speeds differ (a raised part), they crawl, they are of different lanes, or the lane recedes (a receding
-    vehicle's raised parts lie ahead of it)."""
+    they are two cars that features between them linked: 7 gets its own features back, with the feature new to
+    both that lies nearer it (a feature of a third reported vehicle stays where it is). Not where the one that
+    vanished is the follower (a part behind, run into its vehicle), either is new (re-checks judge a new group),
+    the two are closer than KEEP_APART_M, their speeds differ, the follower's height undone puts it on the leader
+    (its raised part), the leader has fewer features than a vehicle needs, they crawl, they are of different
+    lanes, or the lane recedes."""
     from appliance.grouping import KEEP_APART_M, RECHECK_S
 
     if case == "receding":  # 7, nearer the camera, is behind 9 here: 9 may be its raised part seen ahead of it
@@ -1232,20 +1236,26 @@ def test_an_established_vehicle_run_into_the_one_behind_keeps_its_features(case,
     t = 10.0
     s = np.zeros((n, 4))
     a, b, new = np.arange(5), np.arange(5, 13), np.array([13, 14])
-    s[a, 1], s[b, 1], s[new, 1] = np.linspace(10.0, 13.0, 5), np.linspace(22.0, 26.0, 8), (15.0, 20.0)
+    if case == "leader left with too few features":
+        a = np.arange(g.min_report - 1)
+    s[a, 1], s[b, 1], s[new, 1] = np.linspace(10.0, 13.0, len(a)), np.linspace(22.0, 26.0, 8), (15.0, 20.0)
     speed = {"crawling": -2.0, "receding": 15.0}.get(case, -15.0)
     s[:15, 3] = speed
     before = np.full(n, -1, np.int64)
     before[a], before[b] = 7, 9
+    if case == "a third vehicle's feature between them":
+        before[13] = 11
+        g.tracks[11] = VehicleTrack(id=11, first_t=0.0, lane_index=1, reported=True)
     lead_y, follow_y = (10.0, 10.0 + 0.8 * KEEP_APART_M) if case == "near ends close" else (10.0, 22.0)
     if case == "the follower vanished":
         before[a], before[b] = 9, 7  # 7 is the follower now; 9 keeps the group
         lead_y, follow_y = follow_y, lead_y
     vy_7 = speed * (1.3 if case == "speeds differ" else 1.0)
+    vy_9 = speed * (1.15 if case == "follower a raised part of the leader" else 1.0)
     for vid, y, vy, rep in ((7, lead_y, vy_7, t - 0.5 if case == "leader newly reported" else t - 2 * RECHECK_S),
-                            (9, follow_y, speed, t - 2 * RECHECK_S)):
+                            (9, follow_y, vy_9, t - 2 * RECHECK_S)):
         tr = g.tracks[vid] = VehicleTrack(id=vid, first_t=0.0, lane_index=1, reported=True, report_t=rep)
-        tr.trajectory = [(t - 0.04 * (12 - i), 0.0, y - vy * 0.04 * (12 - i)) for i in range(12)]
+        tr.trajectory = [(t - 0.04 * (11 - i), 0.0, y - vy * 0.04 * (11 - i)) for i in range(12)]
         tr.last = VehicleState(vid, t - 0.04, 0.0, y, y + 4.5, 0.0, vy, 4.5, 6)
     if case == "other lane":
         g.tracks[7].lane_index = 2
@@ -1254,7 +1264,9 @@ def test_an_established_vehicle_run_into_the_one_behind_keeps_its_features(case,
     groups = {9: np.arange(15)}
     g._keep_apart(t, groups, before, s)
     if kept_apart:
-        assert np.array_equal(groups[7], [0, 1, 2, 3, 4, 13]) and np.array_equal(groups[9], [5, 6, 7, 8, 9, 10, 11, 12, 14])
+        got_7 = [0, 1, 2, 3, 4] + ([13] if case == "two cars" else [])
+        assert np.array_equal(groups[7], got_7), groups
+        assert np.array_equal(groups[9], np.setdiff1d(np.arange(15), got_7)), groups
         assert (g.fvid[groups[7]] == 7).all() and (g.fvid[groups[9]] == 9).all()
     else:
         assert list(groups) == [9] and np.array_equal(groups[9], np.arange(15)) and (g.fvid[:15] == 9).all()
