@@ -989,12 +989,13 @@ class Grouper:
             groups[vid], groups[other] = front, rest
             touched.update((vid, other))
 
-    def _keep_apart(self, t: float, groups: dict[int, np.ndarray], before: np.ndarray, s: np.ndarray) -> None:
-        """After _assign_ids and _front_keeps_id (before: the ids they started from): an established vehicle of an
-        approaching lane whose id vanished into the group of one KEEP_APART_M or more behind it takes its features
-        back (see KEEP_APART_M), with the group's features of no reported vehicle that lie nearer its own along the
-        road. (The pair graph links the two again next frame; this parts them again.)"""
-        reported = [v for v, o in self.tracks.items() if o.reported]
+    def _keep_apart(self, t: float, groups: dict[int, np.ndarray], before: np.ndarray, s: np.ndarray,
+                    reported: np.ndarray) -> None:
+        """After _assign_ids and _front_keeps_id (before: the ids they started from; reported: the reported
+        vehicles' ids): an established vehicle of an approaching lane whose id vanished into the group of one
+        KEEP_APART_M or more behind it takes its features back (see KEEP_APART_M), with the group's features of no
+        reported vehicle that lie nearer its own along the road. (The pair graph links the two again next frame;
+        this parts them again.)"""
         for vid, tr in list(self.tracks.items()):
             if vid in groups or not tr.reported or tr.lane_index <= 0 or tr.last is None or not tr.trajectory \
                     or self.zones.sign_by_index[tr.lane_index] > 0:
@@ -1062,7 +1063,7 @@ class Grouper:
             before = self.fvid.copy()
             groups = self._assign_ids(live, reported)
             self._front_keeps_id(groups, before, s, age)
-            self._keep_apart(t, groups, before, s)
+            self._keep_apart(t, groups, before, s, reported)
 
         def seen(host: int) -> np.ndarray:
             """A host's slots but its tops seen off the lanes (they lie over whatever follows it in the image)."""

@@ -1262,7 +1262,7 @@ def test_an_established_vehicle_run_into_the_one_behind_keeps_its_features(case,
     g.fvid[:] = -1
     g.fvid[:15] = 9  # as assign_ids left them: one group, 9's
     groups = {9: np.arange(15)}
-    g._keep_apart(t, groups, before, s)
+    g._keep_apart(t, groups, before, s, np.array(sorted(v for v, o in g.tracks.items() if o.reported)))
     if kept_apart:
         got_7 = [0, 1, 2, 3, 4] + ([13] if case == "two cars" else [])
         assert np.array_equal(groups[7], got_7), groups
