@@ -961,6 +961,10 @@ class Grouper:
         order, starts, vids, self.next_vid = assign_ids(live, self.labels, self.fvid, self.next_vid, reported)
         return {int(v): order[a:b] for v, a, b in zip(vids, starts[:-1], starts[1:])}
 
+    def _approaching(self, tr: VehicleTrack) -> bool:
+        """Whether a vehicle is in a lane whose traffic approaches the camera."""
+        return tr.lane_index > 0 and self.zones.sign_by_index[tr.lane_index] < 0
+
     def _front_keeps_id(self, groups: dict[int, np.ndarray], before: np.ndarray, s: np.ndarray,
                         age: np.ndarray) -> None:
         """After _assign_ids (before: the ids it started from): a reported approaching vehicle whose near end's
@@ -969,7 +973,7 @@ class Grouper:
         touched: set[int] = set()
         for vid in groups:  # only existing keys' values change below
             tr = self.tracks.get(vid)
-            if tr is None or not tr.reported or tr.lane_index <= 0 or self.zones.sign_by_index[tr.lane_index] > 0:
+            if tr is None or not tr.reported or not self._approaching(tr):
                 continue
             f = tr.near_slot
             if f < 0 or age[f] == 0 or before[f] != vid or self.fvid[f] == vid:
@@ -996,9 +1000,9 @@ class Grouper:
         KEEP_APART_M or more behind it takes its features back (see KEEP_APART_M), with the group's features of no
         reported vehicle that lie nearer its own along the road. (The pair graph links the two again next frame;
         this parts them again.)"""
-        for vid, tr in list(self.tracks.items()):
-            if vid in groups or not tr.reported or tr.lane_index <= 0 or tr.last is None or not tr.trajectory \
-                    or self.zones.sign_by_index[tr.lane_index] > 0:
+        for vid in reported.tolist():
+            tr = self.tracks[vid]
+            if vid in groups or not self._approaching(tr) or tr.last is None or not tr.trajectory:
                 continue
             own = np.flatnonzero(before == vid)
             own = own[self.fvid[own] != vid]  # its features alive now (the dead keep its id)

@@ -573,9 +573,9 @@ def test_road_texture_uncovered_behind_a_receding_vehicle_is_not_its_near_end():
     assert settled and all(abs(st.vy - 15.0) < 1.5 for st in settled), [round(st.vy, 1) for st in settled]
 
 
-def _lane_1_grouper() -> tuple[Grouper, LaneZones]:
-    """A grouper on the test site and its first lane's zones."""
-    site = parse_site(site_dict())
+def _lane_1_grouper(lanes=None) -> tuple[Grouper, LaneZones]:
+    """A grouper on the test site (with these lanes) and its first lane's zones."""
+    site = parse_site(_site(lanes))
     zones = SiteZones(site)
     return Grouper(site.tracking, zones), zones.by_index(1)
 
@@ -723,11 +723,7 @@ def test_an_approaching_vehicle_come_apart_keeps_its_id_in_its_front_where_both_
     parts crawling below MOVING_MPS, a near end on something standing, a front too small to be a vehicle, one
     mostly of another group's features or carrying an existing group's id (the car behind would take over that
     group's history), and a receding vehicle (counted by its far end) keep the ids assign_ids gave."""
-    if case == "receding":
-        site = parse_site(_site(RECEDING_BESIDE_APPROACHING))
-        g = Grouper(site.tracking, SiteZones(site))
-    else:
-        g, _ = _lane_1_grouper()
+    g, _ = _lane_1_grouper(RECEDING_BESIDE_APPROACHING if case == "receding" else None)
     n = g.p.max_features
     s, age = np.zeros((n, 4)), np.full(n, 20, np.int32)
     front, rest = np.arange(6), np.arange(6, 16)
@@ -1227,11 +1223,8 @@ def test_an_established_vehicle_run_into_the_one_behind_keeps_its_features(case,
     lanes, or the lane recedes."""
     from appliance.grouping import KEEP_APART_M, RECHECK_S
 
-    if case == "receding":  # 7, nearer the camera, is behind 9 here: 9 may be its raised part seen ahead of it
-        site = parse_site(_site(RECEDING_BESIDE_APPROACHING))
-        g = Grouper(site.tracking, SiteZones(site))
-    else:
-        g, _ = _lane_1_grouper()
+    # receding: 7, nearer the camera, is behind 9 there (9 may be its raised part, seen ahead of it)
+    g, _ = _lane_1_grouper(RECEDING_BESIDE_APPROACHING if case == "receding" else None)
     n = g.p.max_features
     t = 10.0
     s = np.zeros((n, 4))
