@@ -28,6 +28,12 @@ STANDING = -1  # the id a standing call seen in the image (appliance.presence) i
 SETTLE_S = 3.0
 WAIT_S = 5.0
 CRAWL_MPS = 3.0
+# The loop's last vehicle, tracked crawling or standing just past it on the camera's side (lower Y: the
+# near side, where an approaching queue stops), hides the loop's patch under its body in the image (a van's
+# roof is seen over the road metres behind it): while it stays there, the image's standing call is its body,
+# not a vehicle on the loop. A vehicle coming onto the loop in its place is the tracker's to see.
+HIDDEN_BEHIND_M = 6.0  # its far end at most this far short of the loop
+HIDDEN_STALE_S = 0.2  # ... as tracked this recently
 
 
 def length_class(length_m: float | None, measures: MeasuresConfig) -> str | None:
@@ -99,6 +105,7 @@ class VirtualLoop:
         self.act: dict | None = None
         self.last_off: float | None = None  # capture time the last actuation ended ...
         self.last_crawled = False  # ... and whether its last vehicle left crawling (or was lost on the loop)
+        self.last_left: tuple[int, tuple | None] = (STANDING, None)  # that vehicle, and its latest (t, lo, hi, speed)
 
     def update(
         self, vid: int, in_lane: bool, prev: tuple | None, cur: tuple, offset: float, was_in_lane: bool = True
@@ -109,6 +116,8 @@ class VirtualLoop:
         Returns the actuations that ended.
         """
         t1, lo1, hi1, v1, len1 = cur
+        if vid == self.last_left[0]:
+            self.last_left = (vid, (t1, lo1, hi1, abs(v1)))
         if prev is None:
             t0, lo0, hi0 = t1, lo1, hi1
         else:
@@ -162,6 +171,8 @@ class VirtualLoop:
             t_on = max(came, self.act["t_on"])
             self.active[STANDING] = _Presence(t_on, t_on + offset)
             return None
+        if self._hidden(t):
+            return None
         last_off = self.act["t_off"] if self.act is not None else self.last_off
         crawled = self.act["crawled"] if self.act is not None else self.last_crawled
         # the vehicle the loop saw last if that one left it crawling (or was lost on it), the image showed the loop
@@ -174,6 +185,12 @@ class VirtualLoop:
         if self.act is None:
             self._start(STANDING, t_on, offset, counted=not seen)
         return ev
+
+    def _hidden(self, t: float) -> bool:
+        """Whether the loop's last vehicle stands just past it on the camera's side: see HIDDEN_BEHIND_M."""
+        st = self.last_left[1]
+        return (st is not None and t - st[0] <= HIDDEN_STALE_S and st[2] < self.y0
+                and self.y0 - st[2] <= HIDDEN_BEHIND_M and st[3] < CRAWL_MPS)
 
     def drop(self, vid: int, t: float) -> LoopEvent | None:
         """The vehicle is gone (finished or lost) at t: its presence ends there."""
@@ -204,6 +221,7 @@ class VirtualLoop:
         p = self.active.pop(vid)
         if vid != STANDING:  # a standing call's id stands for any vehicle
             self.left.add(vid)
+            self.last_left = (vid, None)
         act = self.act
         t_off = max(t_off, p.t_on)
         if t_off >= act["t_off"]:  # the last to leave: did it crawl off (or was it lost crawling)?

@@ -1026,6 +1026,40 @@ def test_a_follower_after_a_vehicle_that_drove_off_gets_its_own_call_edge():
     assert not any(c for t, c in calls if events[0].t_off + 0.25 < t < 2.95)
 
 
+@pytest.mark.parametrize("gap_m, tracked, calls", [(1.5, True, "hidden"), (1.5, False, "stood on it"),
+                                                   (8.0, True, "another car")])
+def test_a_car_standing_just_past_its_loop_hides_it_rather_than_stands_on_it(gap_m: float, tracked: bool,
+                                                                             calls: str):
+    """A car brakes at 2 m/s2 over L1 [30, 31.8] and stands from 5 s with its rear gap_m short of the loop, on
+    the camera's side; the image shows the loop occupied from when the car came onto it and gives a standing
+    call from 6.5 s (came then, stood 5 s) to 40 s. While the tracker holds the car standing just past the loop
+    (1.5 m), its roof hides the loop from the camera and the call is its body: one actuation, off when its rear
+    left the loop. If its track is lost, nothing says where the car is: it stopped on the loop, its actuation
+    on until 40 s. A car standing 8 m on hides nothing (it left the loop at 20 km/h): the call is another car's."""
+    site = make_site(loops=[{"id": "L1", "lane": 1, "channel": 1, "y_m": 30.0, "length_m": 1.8}])
+    tm = TrafficMeasures(site)
+    stand = 30.0 - gap_m - 4.5  # the front where it stands
+    on, off = 5.0 - (31.8 - stand) ** 0.5, 5.0 - (30.0 - 4.5 - stand) ** 0.5
+    events = []
+    for i in range(int(45.0 * 25)):
+        t = i / 25
+        dt = max(5.0 - t, 0.0)
+        y = stand + dt * dt
+        states = [VehicleState(1, t, -2.5, y, y + 4.5, 0.0, -2.0 * dt, 4.5, 5)] if tracked or t < 4.6 else []
+        sight = LoopSight(on if on <= t < 40.0 else None, (on, 5.0) if 6.5 <= t < 40.0 else None)
+        upd = tm.step(t, EPOCH + t, states, {"L1": sight})
+        events += [e for e in upd.loop_events if e.loop_id == "L1"]
+    assert events[0].vehicle_id == 1 and events[0].t_on == pytest.approx(on, abs=0.041)
+    if calls == "hidden":
+        assert len(events) == 1 and events[0].t_off == pytest.approx(off, abs=0.041)
+    elif calls == "stood on it":
+        assert len(events) == 1 and events[0].t_off == pytest.approx(40.0, abs=0.041)
+    else:
+        assert [e.vehicle_id for e in events] == [1, STANDING] and events[0].t_off == pytest.approx(off, abs=0.041)
+        assert events[1].t_on == 5.0 and events[1].t_off == pytest.approx(40.0, abs=0.041)
+    assert tm.channels()[0].count == len(events)
+
+
 def test_a_vehicle_driving_onto_a_loop_held_by_a_standing_call_is_counted():
     """The image gives a standing call on L1 from 3.5 s (came 1 s, stood 2 s) to 30 s, the tracker seeing nothing
     there; at 10 s a tracked car drives onto the loop at 36 km/h. Nobody drives through a vehicle standing on a
