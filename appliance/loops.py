@@ -30,8 +30,9 @@ WAIT_S = 5.0
 CRAWL_MPS = 3.0
 # The loop's last vehicle, tracked crawling or standing just past it on the camera's side (lower Y: the
 # near side, where an approaching queue stops), hides the loop's patch under its body in the image (a van's
-# roof is seen over the road metres behind it): while it stays there, the image's standing call is its body,
-# not a vehicle on the loop. A vehicle coming onto the loop in its place is the tracker's to see.
+# roof is seen over the road metres behind it): the image's standing call seen then is its body, not a vehicle
+# on the loop, and is refused for as long as it lasts. A vehicle coming onto the loop in its place is the
+# tracker's to see (one that stops on the loop unseen by the tracker gets no call meanwhile).
 HIDDEN_BEHIND_M = 6.0  # its far end at most this far short of the loop
 HIDDEN_STALE_S = 0.2  # ... as tracked this recently
 
@@ -105,7 +106,9 @@ class VirtualLoop:
         self.act: dict | None = None
         self.last_off: float | None = None  # capture time the last actuation ended ...
         self.last_crawled = False  # ... and whether its last vehicle left crawling (or was lost on the loop)
-        self.last_left: tuple[int, tuple | None] = (STANDING, None)  # that vehicle, and its latest (t, lo, hi, speed)
+        # ... that vehicle, and its latest (t, lo, hi, speed); and the standing call refused as its body
+        self.last_left: tuple[int, tuple | None] = (STANDING, None)
+        self.hid: tuple[float, float] | None = None
 
     def update(
         self, vid: int, in_lane: bool, prev: tuple | None, cur: tuple, offset: float, was_in_lane: bool = True
@@ -160,7 +163,9 @@ class VirtualLoop:
         """A vehicle seen in the image standing on the loop holds it on, tracked or not (a queued vehicle's
         features are often lost). With the tracker's vehicles on the loop it is part of their actuation. If it
         is the vehicle the loop saw last, the call goes on again where that one's went off (if it went off), and
-        it is not counted again; else it goes on when it stood, and it is counted."""
+        it is not counted again; else it goes on when it stood, and it is counted. A call seen while the loop's
+        last vehicle hides the loop is refused for as long as it lasts (see HIDDEN_BEHIND_M); a vehicle the
+        tracker puts on the loop meanwhile takes it on as above."""
         standing = sight.standing if sight is not None else None
         if standing is None:
             return self._close(STANDING, t) if STANDING in self.active else None
@@ -171,7 +176,8 @@ class VirtualLoop:
             t_on = max(came, self.act["t_on"])
             self.active[STANDING] = _Presence(t_on, t_on + offset)
             return None
-        if self._hidden(t):
+        if standing == self.hid or self._hidden(t):
+            self.hid = standing  # refused while it lasts, whatever that vehicle does meanwhile
             return None
         last_off = self.act["t_off"] if self.act is not None else self.last_off
         crawled = self.act["crawled"] if self.act is not None else self.last_crawled
@@ -187,7 +193,8 @@ class VirtualLoop:
         return ev
 
     def _hidden(self, t: float) -> bool:
-        """Whether the loop's last vehicle stands just past it on the camera's side: see HIDDEN_BEHIND_M."""
+        """Whether the loop's last vehicle crawls or stands just past it on the camera's side: see
+        HIDDEN_BEHIND_M."""
         st = self.last_left[1]
         return (st is not None and t - st[0] <= HIDDEN_STALE_S and st[2] < self.y0
                 and self.y0 - st[2] <= HIDDEN_BEHIND_M and st[3] < CRAWL_MPS)

@@ -1026,38 +1026,86 @@ def test_a_follower_after_a_vehicle_that_drove_off_gets_its_own_call_edge():
     assert not any(c for t, c in calls if events[0].t_off + 0.25 < t < 2.95)
 
 
-@pytest.mark.parametrize("gap_m, tracked, calls", [(1.5, True, "hidden"), (1.5, False, "stood on it"),
-                                                   (8.0, True, "another car")])
-def test_a_car_standing_just_past_its_loop_hides_it_rather_than_stands_on_it(gap_m: float, tracked: bool,
-                                                                             calls: str):
-    """A car brakes at 2 m/s2 over L1 [30, 31.8] and stands from 5 s with its rear gap_m short of the loop, on
-    the camera's side; the image shows the loop occupied from when the car came onto it and gives a standing
-    call from 6.5 s (came then, stood 5 s) to 40 s. While the tracker holds the car standing just past the loop
-    (1.5 m), its roof hides the loop from the camera and the call is its body: one actuation, off when its rear
-    left the loop. If its track is lost, nothing says where the car is: it stopped on the loop, its actuation
-    on until 40 s. A car standing 8 m on hides nothing (it left the loop at 20 km/h): the call is another car's."""
-    site = make_site(loops=[{"id": "L1", "lane": 1, "channel": 1, "y_m": 30.0, "length_m": 1.8}])
-    tm = TrafficMeasures(site)
-    stand = 30.0 - gap_m - 4.5  # the front where it stands
-    on, off = 5.0 - (31.8 - stand) ** 0.5, 5.0 - (30.0 - 4.5 - stand) ** 0.5
-    events = []
+def _standing_past(case: str) -> tuple[list, list, float, float]:
+    """A car brakes at 2 m/s2 over L1 [30, 31.8] in lane 1 and stands from 5 s with its rear 1.5 m short of the
+    loop, on the camera's side ("8 m": 8 m short; "receding": a lane-2 car stands 1.5 m beyond the loop,
+    away from the camera); the image shows the loop occupied from when the car came onto it and gives a
+    standing call (came then, stood 5 s) from 6.5 s to 40 s (22 s for "drives off"). Its track: kept to the
+    end, "lost" at 4.6 s, "lost later" at 20 s, or it "drives off" at 20 s. Returns L1's events (L2's for
+    "receding"), the call per frame, and when the car came onto the loop and left it."""
+    receding = case == "receding"
+    gap = 8.0 if case == "8 m" else 1.5
+    stand = 31.8 + gap if receding else 30.0 - gap - 4.5  # its near end where it stands (rear, front)
+    lp = {"id": "L2" if receding else "L1", "lane": 2 if receding else 1, "channel": 1, "y_m": 30.0,
+          "length_m": 1.8}
+    tm = TrafficMeasures(make_site(loops=[lp]))
+    # it came onto the loop and left it this far (dt * dt) short of where it stands
+    on = 5.0 - (stand + 4.5 - 30.0 if receding else 31.8 - stand) ** 0.5
+    off = 5.0 - (stand - 31.8 if receding else 30.0 - 4.5 - stand) ** 0.5
+    end = {"lost": 4.6, "lost later": 20.0}.get(case, 45.0)
+    call_end = 22.0 if case == "drives off" else 40.0
+    events, calls = [], []
     for i in range(int(45.0 * 25)):
         t = i / 25
         dt = max(5.0 - t, 0.0)
-        y = stand + dt * dt
-        states = [VehicleState(1, t, -2.5, y, y + 4.5, 0.0, -2.0 * dt, 4.5, 5)] if tracked or t < 4.6 else []
-        sight = LoopSight(on if on <= t < 40.0 else None, (on, 5.0) if 6.5 <= t < 40.0 else None)
-        upd = tm.step(t, EPOCH + t, states, {"L1": sight})
-        events += [e for e in upd.loop_events if e.loop_id == "L1"]
-    assert events[0].vehicle_id == 1 and events[0].t_on == pytest.approx(on, abs=0.041)
-    if calls == "hidden":
-        assert len(events) == 1 and events[0].t_off == pytest.approx(off, abs=0.041)
-    elif calls == "stood on it":
-        assert len(events) == 1 and events[0].t_off == pytest.approx(40.0, abs=0.041)
-    else:
-        assert [e.vehicle_id for e in events] == [1, STANDING] and events[0].t_off == pytest.approx(off, abs=0.041)
-        assert events[1].t_on == 5.0 and events[1].t_off == pytest.approx(40.0, abs=0.041)
+        go = max(t - 20.0, 0.0) if case == "drives off" else 0.0
+        ahead, v = go * go - dt * dt, 2.0 * (dt + go)  # braking to the stand, then pulling away
+        if receding:
+            states = [VehicleState(1, t, 2.5, stand + ahead + 4.5, stand + ahead, 0.0, v, 4.5, 5)]
+        else:
+            states = [VehicleState(1, t, -2.5, stand - ahead, stand - ahead + 4.5, 0.0, -v, 4.5, 5)]
+        sight = LoopSight(on if on <= t < call_end else None, (on, 5.0) if 6.5 <= t < call_end else None)
+        upd = tm.step(t, EPOCH + t, states if t < end else [], {lp["id"]: sight})
+        events += upd.loop_events
+        calls.append((t, tm.channels()[0].call))
     assert tm.channels()[0].count == len(events)
+    return events, calls, on, off
+
+
+@pytest.mark.parametrize("case", ["tracked", "lost later", "drives off"])
+def test_a_car_standing_just_past_its_loop_hides_it_rather_than_stands_on_it(case: str):
+    """While the tracker holds the car standing just past its loop on the camera's side, its roof hides the
+    loop from the camera and the standing call is its body: one actuation, off when the car's rear left the
+    loop. The call is refused for as long as it lasts, whether the car's track is lost meanwhile or the car
+    drives off before the image lets the call go (the call drops WAIT_S after the car left, and stays off)."""
+    events, calls, on, off = _standing_past(case)
+    assert len(events) == 1 and events[0].vehicle_id == 1
+    assert events[0].t_on == pytest.approx(on, abs=0.041) and events[0].t_off == pytest.approx(off, abs=0.041)
+    assert not any(c for t, c in calls if t > off + WAIT_S + 0.1)
+
+
+@pytest.mark.parametrize("case", ["lost", "receding"])
+def test_a_car_whose_place_is_unknown_or_hides_nothing_stood_on_its_loop(case: str):
+    """Lost before it stood, nothing says where the car is; a receding car standing beyond its loop (away from
+    the camera) hides nothing of it: either way the standing call is the car's, stopped on the loop (one
+    actuation, on until the call ends at 40 s)."""
+    events, _, on, off = _standing_past(case)
+    assert len(events) == 1 and events[0].vehicle_id == 1 and events[0].t_on == pytest.approx(on, abs=0.041)
+    assert events[0].t_off == pytest.approx(40.0, abs=0.041)
+
+
+def test_a_car_standing_further_past_its_loop_leaves_the_call_to_another():
+    """A car standing 8 m past its loop left it at 20 km/h and hides nothing of it: the standing call is another
+    car's, a second actuation from when that one stood."""
+    events, _, on, off = _standing_past("8 m")
+    assert [e.vehicle_id for e in events] == [1, STANDING] and events[0].t_off == pytest.approx(off, abs=0.041)
+    assert events[1].t_on == 5.0 and events[1].t_off == pytest.approx(40.0, abs=0.041)
+
+
+def test_a_car_rolling_on_past_its_loop_leaves_the_call_to_another():
+    """A tracked car rolls over L1 at 3.5 m/s (13 km/h) and on; a standing call comes from 7 s (came 5.8 s,
+    stood 6 s) to 20 s while its rear is 5 m past the loop, still moving: a moving car's body does not stand over
+    the loop, so the call is another car's, a second actuation from when that one stood."""
+    tm = TrafficMeasures(make_site(loops=[{"id": "L1", "lane": 1, "channel": 1, "y_m": 30.0, "length_m": 1.8}]))
+    events = []
+    for i in range(int(25.0 * 25)):
+        t = i / 25
+        y = 45.0 - 3.5 * t  # off the loop at 5.57 s (its rear past 30 m), 5 m past it at 7 s
+        states = [VehicleState(1, t, -2.5, y, y + 4.5, 0.0, -3.5, 4.5, 5)] if y > 10.0 else []
+        sight = LoopSight(5.8 if 5.8 <= t < 20.0 else None, (5.8, 6.0) if 7.0 <= t < 20.0 else None)
+        events += tm.step(t, EPOCH + t, states, {"L1": sight}).loop_events
+    assert [e.vehicle_id for e in events] == [1, STANDING] and tm.channels()[0].count == 2
+    assert events[1].t_on == 6.0 and events[1].t_off == pytest.approx(20.0, abs=0.041)
 
 
 def test_a_vehicle_driving_onto_a_loop_held_by_a_standing_call_is_counted():
