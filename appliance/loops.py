@@ -31,8 +31,9 @@ CRAWL_MPS = 3.0
 # The loop's last vehicle, tracked crawling or standing just past it on the camera's side (lower Y: the
 # near side, where an approaching queue stops), hides the loop's patch under its body in the image (a van's
 # roof is seen over the road metres behind it): the image's standing call seen then is its body, not a vehicle
-# on the loop, and is refused for as long as it lasts. A vehicle coming onto the loop in its place is the
-# tracker's to see (one that stops on the loop unseen by the tracker gets no call meanwhile).
+# on the loop, and is refused for as long as it lasts while the tracker follows that vehicle (standing, or
+# driving off before the image lets the call go). If its track is lost, nothing says what stands on the loop
+# now (in a queue, the next car, its features lost too): the call is taken, from when it stood.
 HIDDEN_BEHIND_M = 6.0  # its far end at most this far short of the loop
 HIDDEN_STALE_S = 0.2  # ... as tracked this recently
 
@@ -164,8 +165,8 @@ class VirtualLoop:
         features are often lost). With the tracker's vehicles on the loop it is part of their actuation. If it
         is the vehicle the loop saw last, the call goes on again where that one's went off (if it went off), and
         it is not counted again; else it goes on when it stood, and it is counted. A call seen while the loop's
-        last vehicle hides the loop is refused for as long as it lasts (see HIDDEN_BEHIND_M); a vehicle the
-        tracker puts on the loop meanwhile takes it on as above."""
+        last vehicle hides the loop is refused while it lasts and that vehicle is tracked (see HIDDEN_BEHIND_M);
+        a vehicle the tracker puts on the loop meanwhile takes it on as above."""
         standing = sight.standing if sight is not None else None
         if standing is None:
             return self._close(STANDING, t) if STANDING in self.active else None
@@ -176,8 +177,8 @@ class VirtualLoop:
             t_on = max(came, self.act["t_on"])
             self.active[STANDING] = _Presence(t_on, t_on + offset)
             return None
-        if standing == self.hid or self._hidden(t):
-            self.hid = standing  # refused while it lasts, whatever that vehicle does meanwhile
+        if self._hidden(t) or (standing == self.hid and not self._last_lost(t)):
+            self.hid = standing
             return None
         last_off = self.act["t_off"] if self.act is not None else self.last_off
         crawled = self.act["crawled"] if self.act is not None else self.last_crawled
@@ -198,6 +199,11 @@ class VirtualLoop:
         st = self.last_left[1]
         return (st is not None and t - st[0] <= HIDDEN_STALE_S and st[2] < self.y0
                 and self.y0 - st[2] <= HIDDEN_BEHIND_M and st[3] < CRAWL_MPS)
+
+    def _last_lost(self, t: float) -> bool:
+        """Whether the loop's last vehicle is no longer tracked."""
+        st = self.last_left[1]
+        return st is None or t - st[0] > HIDDEN_STALE_S
 
     def drop(self, vid: int, t: float) -> LoopEvent | None:
         """The vehicle is gone (finished or lost) at t: its presence ends there."""
