@@ -197,8 +197,8 @@ class VirtualLoop:
         """Whether the loop's last vehicle crawls or stands just past it on the camera's side: see
         HIDDEN_BEHIND_M."""
         st = self.last_left[1]
-        return (st is not None and t - st[0] <= HIDDEN_STALE_S and st[2] < self.y0
-                and self.y0 - st[2] <= HIDDEN_BEHIND_M and st[3] < CRAWL_MPS)
+        return (not self._last_lost(t) and st[2] < self.y0 and self.y0 - st[2] <= HIDDEN_BEHIND_M
+                and st[3] < CRAWL_MPS)
 
     def _last_lost(self, t: float) -> bool:
         """Whether the loop's last vehicle is no longer tracked."""
