@@ -1104,17 +1104,19 @@ def test_a_car_standing_further_past_its_loop_leaves_the_call_to_another():
 def test_a_car_rolling_on_past_its_loop_leaves_the_call_to_another():
     """A tracked car rolls over L1 at 3.5 m/s (13 km/h) and on; a standing call comes from 7 s (came 5.8 s,
     stood 6 s) to 20 s while its rear is 5 m past the loop, still moving: a moving car's body does not stand over
-    the loop, so the call is another car's, a second actuation from when that one stood."""
+    the loop, so the call is another car's, a second actuation from when that one stood, on as it comes."""
     tm = TrafficMeasures(make_site(loops=[{"id": "L1", "lane": 1, "channel": 1, "y_m": 30.0, "length_m": 1.8}]))
-    events = []
+    events, calls = [], []
     for i in range(int(25.0 * 25)):
         t = i / 25
         y = 45.0 - 3.5 * t  # off the loop at 5.57 s (its rear past 30 m), 5 m past it at 7 s
         states = [VehicleState(1, t, -2.5, y, y + 4.5, 0.0, -3.5, 4.5, 5)] if y > 10.0 else []
         sight = LoopSight(5.8 if 5.8 <= t < 20.0 else None, (5.8, 6.0) if 7.0 <= t < 20.0 else None)
         events += tm.step(t, EPOCH + t, states, {"L1": sight}).loop_events
+        calls.append((t, tm.channels()[0].call))
     assert [e.vehicle_id for e in events] == [1, STANDING] and tm.channels()[0].count == 2
     assert events[1].t_on == 6.0 and events[1].t_off == pytest.approx(20.0, abs=0.041)
+    assert all(c for t, c in calls if 7.05 < t < 19.95)
 
 
 def test_a_vehicle_driving_onto_a_loop_held_by_a_standing_call_is_counted():
