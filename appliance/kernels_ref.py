@@ -238,7 +238,7 @@ def isolate_ref(new, kept, live, owner, state) -> None:
                 state[min(i, j), max(i, j)] = APART
 
 
-def fit_places_ref(members, age, s, fit, fit_vid, vid, d, cy, k_max, frames, min_var, neighbour) -> float:
+def fit_places_ref(members, age, s, fit, fit_vid, vid, d, cy, k_max, frames, min_var, neighbour) -> tuple:
     """Same contract as grouping.fit_places, vectorised over the group's features."""
     m = members[age[members] >= 3]
     stale = fit_vid[m] != vid
@@ -252,11 +252,18 @@ def fit_places_ref(members, age, s, fit, fit_vid, vid, d, cy, k_max, frames, min
     cov = f[:, 4] / n - f[:, 1] * f[:, 2] / (n * n)
     ok = (n >= frames) & (var >= min_var)
     if not ok.any() or q[~ok].max(initial=-np.inf) > q[ok].max():
-        return float("nan")
+        return float("nan"), float("nan")
     k = np.clip(cov[ok] / var[ok], 1.0, k_max)
-    places = np.sort(f[ok, 2] / n[ok] / k - f[ok, 1] / n[ok])
-    close = np.diff(places) <= neighbour
-    return float(places[1:][close][-1]) if close.any() else float(np.median(places))
+    places = f[ok, 2] / n[ok] / k - f[ok, 1] / n[ok]
+    order = np.argsort(places, kind="stable")
+    places, k = places[order], k[order]
+    close = np.flatnonzero(np.diff(places) <= neighbour)
+    if len(close):
+        return float(places[close[-1] + 1]), float(k[close[-1] + 1])
+    h = len(places) // 2
+    if len(places) % 2:
+        return float(places[h]), float(k[h])
+    return float((places[h - 1] + places[h]) / 2.0), float((k[h - 1] + k[h]) / 2.0)
 
 
 def group_summary_ref(members, s, px, age, near_m, spot_m, moving, standing, fast, fast_min) -> tuple:

@@ -150,6 +150,10 @@ class SiteZones:
         """_gain of the tracker's camera."""
         return _gain(self.camera, height_m)
 
+    def length_magnification(self, height_m: float) -> float | None:
+        """_gain of the camera that lengths are measured with (length_camera)."""
+        return _gain(self.length_camera, height_m)
+
     def _paint(self, attr: str) -> np.ndarray:
         img = np.zeros((self.height, self.width), np.uint8)
         for lz in self.lanes:

@@ -364,6 +364,22 @@ def test_reported_length_is_the_vehicle_on_the_road_not_its_roof_projected_beyon
     assert np.all(np.abs(np.array([st.y_rear - st.y_front for st in states]) - lengths) < 1e-6)
 
 
+def test_a_far_end_on_the_road_is_the_vehicles_end_with_nothing_hidden_beyond_it():
+    """A car whose furthest features lie on the road (its shadow's edge just behind it, or a low bumper) has
+    nothing of itself beyond them, unlike a roofline (HIDDEN_SHARE_REAR): the reported length is where they lie,
+    within 0.3 m (taken for a roofline they read 15 % further: 5.7 m for these 5 m)."""
+    front, length = 44.0, 5.0
+    body = (_box(-2.6, -0.9, front, front + 1.2, 10, 5), -15.0, 1, 0, 0.0)  # bonnet and bumper, low
+    cabin = (_box(-2.5, -1.0, front + 1.5, front + 3.5, 10, 6), -15.0, 1, 0, 1.3)
+    tail = (_box(-2.6, -0.9, front + length - 0.4, front + length, 8, 7), -15.0, 1, 0, 0.0)  # on the road
+    seen = _run([body, cabin, tail], frames=60)
+    assert len(seen) == 1, _firsts(seen)
+    states = [st for st in next(iter(seen.values())) if not st.finished and st.y_front < 30.0]
+    assert len(states) > 10, seen
+    lengths = np.array([st.length for st in states])
+    assert np.all(np.abs(lengths - length) < 0.3), lengths
+
+
 def test_an_uncentred_frames_lengths_are_measured_with_heights_undone():
     """A frame whose calibration fits a camera only with its lens's axis off the frame's centre (a crop: the real
     clip's) is tracked without heights, but lengths are measured with that camera (SiteZones.length_camera,
