@@ -217,9 +217,9 @@ SINGLE_TRACK_MAX_WIDTH_M = 1.2
 # behind its front (the bonnet is hidden from behind), its rear window's top about a sixth ahead of its rear.
 HIDDEN_SHARE_FRONT = 0.3
 HIDDEN_SHARE_REAR = 0.15
-# ... but a far end fitted no higher than this is the vehicle's lowest edge (its bumper, or its shadow's edge on
-# the road behind it): nothing of the vehicle lies beyond it (taken for a roofline it read 18 % long: on dense
-# seed 13, 38 of 528 cars read over 6 m at the loops, 29 without it)
+# ... but a far end fitted no higher than this is the vehicle's lowest edge (its bumper, or the edge of its shadow
+# on the road beyond it): nothing of the vehicle lies beyond it. (Taken for a roofline, such a far end read 18 %
+# long: on dense seed 13, 38 of 528 cars read over 6 m at the loops; 29 once it is not.)
 LOW_END_M = 0.5
 # A receding vehicle enters large at the image bottom: when it straddles two lanes (changing lanes) or its
 # shadow or flank falls in the next lane, the features born there carry that lane's label and form a group
@@ -606,8 +606,9 @@ def fit_places(members, age, s, fit, fit_vid, vid, d, cy, k_max, frames, min_var
     """Add this frame to the straight-line fits (see Grouper._ground_length) of a group's settled features
     against its near end, d from the camera's foot along the road (a fit made for another group starts
     afresh). Returns how far behind the near end the group's far end lies on the road, and its height
-    magnification: the furthest fitted feature with another within ``neighbour``, else their median; NaN while
-    none is fitted, or while one not yet fitted lies further (a fragment that just joined)."""
+    magnification: the furthest fitted feature with another within ``neighbour``, else their median (of an even
+    count, the middle two's means); (NaN, NaN) while none is fitted, or while one not yet fitted lies further
+    (a fragment that just joined)."""
     places = np.empty(members.shape[0])
     ks = np.empty(members.shape[0])
     n_ok = 0

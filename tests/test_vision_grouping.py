@@ -365,9 +365,9 @@ def test_reported_length_is_the_vehicle_on_the_road_not_its_roof_projected_beyon
 
 
 def test_a_far_end_on_the_road_is_the_vehicles_end_with_nothing_hidden_beyond_it():
-    """A car whose furthest features lie on the road (its shadow's edge just behind it, or a low bumper) has
-    nothing of itself beyond them, unlike a roofline (HIDDEN_SHARE_REAR): the reported length is where they lie,
-    within 0.3 m (taken for a roofline they read 15 % further: 5.7 m for these 5 m)."""
+    """A car whose furthest features lie on the road (the edge of its shadow beyond it, or a low bumper) has
+    nothing of itself beyond them, unlike a roofline (HIDDEN_SHARE_REAR): the reported length is where they lie
+    (4.6-5 m behind its front here), within 0.3 m of its 5 m. Taken for a roofline they read 5.7 m."""
     front, length = 44.0, 5.0
     body = (_box(-2.6, -0.9, front, front + 1.2, 10, 5), -15.0, 1, 0, 0.0)  # bonnet and bumper, low
     cabin = (_box(-2.5, -1.0, front + 1.5, front + 3.5, 10, 6), -15.0, 1, 0, 1.3)
