@@ -1439,7 +1439,7 @@ class Grouper:
             # from then on (a length that kept changing would add distance or time it did not travel)
             return max(tr.ground[0], tr.adopted)
         fy = self.length_foot[1]
-        behind, k_far = fit_places(members, age, s, self.fit, self.fit_vid, tr.id, near_y - fy, fy,
+        behind, k_end = fit_places(members, age, s, self.fit, self.fit_vid, tr.id, near_y - fy, fy,
                                    self.length_k_max, FIT_FRAMES, FIT_TRAVEL_SD_M ** 2, FIT_NEIGHBOUR_M)
         # until some are fitted, or while a feature not yet fitted lies further (a fragment that just joined):
         # the last length, or at first the features' span; never short of a part it adopted (a top's rear edge
@@ -1449,7 +1449,7 @@ class Grouper:
         tr.fitted = True
         if behind < FIT_MIN_EXTENT_M and not tr.adopted:
             return NOMINAL_LENGTH_M
-        share = 0.0 if k_far <= self.length_k_level else HIDDEN_SHARE_FRONT if sign > 0 else HIDDEN_SHARE_REAR
+        share = 0.0 if k_end <= self.length_k_level else HIDDEN_SHARE_FRONT if sign > 0 else HIDDEN_SHARE_REAR
         # never longer than the features' span now, whose far end is projected beyond the vehicle: a misfit
         # does not make a vehicle longer than what is seen of it
         g = max(min(behind / (1.0 - share), length), tr.adopted)
