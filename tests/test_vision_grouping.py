@@ -1279,3 +1279,13 @@ def test_an_established_vehicle_run_into_the_one_behind_keeps_its_features(case,
         assert (g.fvid[groups[7]] == 7).all() and (g.fvid[groups[9]] == 9).all()
     else:
         assert list(groups) == [9] and np.array_equal(groups[9], np.arange(15)) and (g.fvid[:15] == 9).all()
+
+
+@pytest.mark.parametrize("roof_m, counted", [(26.0, 0), (41.0, 1)])
+def test_a_vehicle_in_view_at_the_start_counts_only_if_it_crosses_once_its_features_settled(roof_m, counted):
+    """At the start the first frame's features of a vehicle past its count line may be its roof's alone: 1.4 m up
+    and 3-4 m past the line on the road, it is projected 2 m short of it, and the near end crossing in the first
+    frames is no count. One whose roof is seen 15 m further back crosses after its features settled and counts."""
+    roof = (_box(-1.6, 1.6, roof_m, roof_m + 1.0, 6, 5), -25.0, 1, 0, 1.4)
+    seen = _run([roof], frames=40)
+    assert _counted(seen) == counted, _firsts(seen)
