@@ -30,13 +30,17 @@ MERGED_LO, MERGED_HI = 3, 4
 # same lane, too far apart when first seen together: they may still link (see LATE_BESIDE_M)
 FAR = 5
 SETTLED_AGE = 5  # frames before a feature's speed counts
-# The vehicles in view when the grouper starts (the service started or restarted) are seen at first by whatever
-# features the first frame gave them, often a roof's rear edge, and their groups form before those features settle:
-# such a near end, up to 10 m behind the front at 45 m, reads a vehicle that crossed its count line before the start
-# as short of it, and its first steps would count it. A first report carries no near-end points from the grouper's
-# first SETTLED_AGE + 1 frames (see Grouper.settled_t; the first has no features yet, the tracker finds them in the
-# second): it counts only what crossed since.
-# (On the synthetic scenes 12 of the 16 crossings counted in a scene's first 0.2 s were such vehicles.)
+# The vehicles in view when the grouper starts (the service started, or a config reload rebuilt the pipeline) show at
+# first only the corners the tracker finds in its second frame (the first gives none), often a roof's rear edge, and
+# their groups form before those features settle: such a near end, up to 10 m behind the front 45 m from the camera,
+# reads a vehicle that crossed its count line before the start as short of it, and its first steps would count it.
+# A first report carries no near-end points from before the grouper's step START_SETTLE_STEPS (Grouper.settled_t,
+# when the features found in its second step are SETTLED_AGE - 1 frames old): it counts only what crossed since. (Its
+# own state and those after it are from that step on while tracking.min_track_frames is 5 or more.) On the
+# synthetic scenes 12 of the 16 crossings counted in a scene's first 0.2 s were such vehicles; this drops 11 of them
+# and the 4 true crossings (fronts 2-5 m short of the line at the start: seen alike).
+START_SETTLE_STEPS = SETTLED_AGE + 1
+
 # A feature's motion when a pair is first seen: STANDING below STANDING_MPS once settled (scenery, an
 # occluder's edge, a queued vehicle), MOVING above MOVING_MPS, else unsure (0)
 STANDING, MOVING = 1, 2
@@ -879,7 +883,7 @@ class Grouper:
         self.tracks: dict[int, VehicleTrack] = {}
         self.next_vid = 1
         self.steps = 0
-        self.settled_t = np.inf  # when the features found in the first frame have settled (see SETTLED_AGE)
+        self.settled_t = np.inf  # the time of step START_SETTLE_STEPS
         self.finished_total = 0
         self._place = 0.0
         self._k = 1.0  # the speed ratio of the last group _host_of matched to its host (1 for a side part)
@@ -1070,7 +1074,7 @@ class Grouper:
         two is one body, not the road (in that share of it, or the image test's own)."""
         p = self.p
         self.steps += 1
-        if self.steps == SETTLED_AGE + 1:
+        if self.steps == START_SETTLE_STEPS:
             self.settled_t = t
         live = np.flatnonzero(alive)
         retire: list[np.ndarray] = []
@@ -1236,12 +1240,12 @@ class Grouper:
             if not tr.reported:
                 tr.reported = True
                 tr.report_t = st.t
-                # the earlier near-end points, so that lines crossed before this report still count
+                # the earlier near-end points since settled_t, so that lines crossed before this report still count
                 ahead = 0.0 if sign < 0 else tr.ground[1] - st.y_rear  # (as far ahead as the front reported)
                 earlier = tr.trajectory[:-1]
-                kept = [(pt, px_, py + ahead) for pt, px_, py in earlier if pt >= self.settled_t]
                 # a list, even with none of them left, marks the first report (the pipeline holds and extends it)
-                st.trajectory = kept if kept or earlier else None
+                st.trajectory = [(pt, px_, py + ahead) for pt, px_, py in earlier
+                                 if pt >= self.settled_t] if earlier else None
                 st.entered = self._entered(tr, st, ahead)
             elif self.matching_host(tr.id):  # no match this frame: no evidence either way
                 st = replace(st, part_of=tr.votes[0])
