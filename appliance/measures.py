@@ -24,6 +24,15 @@ MIN_SPACING_M = 5.0
 MIN_TIME_GAP_S = 0.2
 MIN_HEADWAY_S = 0.3
 MAX_HEADWAY_S = 0.6
+# ... and so is a front crossing after the last one counted in its lane, CLOSING_K or more times as fast, that
+# would run into it within CLOSING_S: their gap (that one's speed times the time between the crossings, less its
+# length) over their speed difference. It is that vehicle's raised part (a truck's box top, a van's roof rack:
+# projected by its height, faster and further back), a follower closing that fast would be a near-crash (traffic
+# conflict studies flag times to collision under 1.5-3 s). Only where that one moved at CLOSING_MIN_MPS or more:
+# out of a queue a follower pulls away faster than the one ahead crossed.
+CLOSING_K = 1.1
+CLOSING_MIN_MPS = 12.0
+CLOSING_S = 2.0
 MAX_TRAJECTORY_POINTS = 2000
 MAX_EDIE_SEGMENTS = 3000  # per vehicle (2 minutes at 25 frames/s): what can be taken back
 ENDED_KEEP_S = LOST_AFTER_S  # an ended vehicle is kept this long for a fragment crossing its count line after it
@@ -121,6 +130,12 @@ def _on_body(lo: float, held: list[tuple[float, float]]) -> bool:
     return any(-SAME_BODY_M[0] <= lo - y <= min(n, SAME_BODY_M[1]) for y, n in held)
 
 
+def _closing(dt: float, v_ahead: float, length_ahead: float, v: float) -> bool:
+    """Whether a front crossing dt after one of a vehicle this long at v_ahead would run into it (see CLOSING_S)."""
+    return (dt >= 0.0 and v_ahead >= CLOSING_MIN_MPS and v >= CLOSING_K * v_ahead
+            and v_ahead * dt - length_ahead < CLOSING_S * (v - v_ahead))
+
+
 def min_headway(speed_mps: float) -> float:
     """The shortest front-to-front time in which a vehicle can follow another at this speed."""
     return min(max(MIN_SPACING_M / max(speed_mps, 1e-3) + MIN_TIME_GAP_S, MIN_HEADWAY_S), MAX_HEADWAY_S)
@@ -215,7 +230,7 @@ class TrafficMeasures:
             self.occupancy_loop.setdefault(lp.cfg.lane, lp)
         self.tracks: dict[int, _Track] = {}
         self.crossings: dict[int, list[Crossing]] = {lane: [] for lane in self.lanes.ids}
-        self.last_counted: dict[int, tuple[float, int, float]] = {}  # lane -> (capture time, vehicle, m/s)
+        self.last_counted: dict[int, tuple[float, int, float, float]] = {}  # lane -> (capture time, vehicle, m/s, m)
         self.families: dict[int, _Family] = {}  # by the id of the counted vehicle
         self.ended: dict[int, _Track] = {}  # vehicles ended in the last ENDED_KEEP_S
         self.merged_crossings = 0  # crossings taken as fragments of the vehicle just before
@@ -417,14 +432,15 @@ class TrafficMeasures:
             return
         tr.counted.add(lane_c)
         speed_mps = speed_kmh / 3.6
-        last = self.last_counted.get(lane_c)  # (time, vehicle, speed): a merged part never moves it on
-        if last is not None and abs(tc - last[0]) < min_headway(min(speed_mps, last[2])):
+        last = self.last_counted.get(lane_c)  # (time, vehicle, speed, length): a merged part never moves it on
+        if last is not None and (abs(tc - last[0]) < min_headway(min(speed_mps, last[2]))
+                                 or _closing(tc - last[0], last[2], last[3], speed_mps)):
             self.merged_crossings += 1
             if last[1] != v.id:
                 self._duplicate(v.id, tr, last[1])
             return
         if last is None or tc >= last[0]:
-            self.last_counted[lane_c] = (tc, v.id, speed_mps)
+            self.last_counted[lane_c] = (tc, v.id, speed_mps, v.length)
         if tr.counted_lane is None:
             tr.counted_lane = lane_c
         cr = Crossing(v.id, lane_c, tc, tc + offset, speed_kmh, v.length, self.count_y[lane_c])

@@ -376,6 +376,29 @@ def test_a_second_front_closer_than_a_car_can_follow_is_the_same_vehicle(speed, 
     assert [c.vehicle_id for c in counted] == ([1] if one else [1, 2])
 
 
+@pytest.mark.parametrize("speed, ratio, lag, one", [(20.0, 1.4, 0.75, True), (20.0, 1.2, 1.5, False),
+                                                    (20.0, 1.05, 0.75, False), (8.0, 1.4, 0.75, False)])
+def test_a_front_that_would_run_into_the_vehicle_counted_before_it_is_that_vehicles_raised_part(speed, ratio, lag,
+                                                                                                  one):
+    """A truck's box top, projected by its height, crosses the count line 0.72 s after the truck's front at 1.4 times
+    its speed (20 m/s, reported 4.5 m long): 10 m apart and closing at 8 m/s, a follower would run into it within
+    1.2 s (CLOSING_S: 2 s), so it is the truck's part: one count. A car 1.5 s behind at 1.2 times the speed would
+    close the 25 m in 6.3 s, one 5 % faster the 10 m in 10 s: they count. Below CLOSING_MIN_MPS (at 8 m/s) a faster
+    follower may be pulling away from a queue: it counts."""
+    tm = TrafficMeasures(make_site())
+    counted = []
+    for i in range(150):
+        t = i * 0.04
+        vs = []
+        for vid, t0, v in ((1, 0.0, speed), (2, lag, ratio * speed)):
+            y = 52.0 - v * (t - t0)
+            if y < 60.0:
+                vs.append(VehicleState(vid, t, -2.5, y, y + 4.5, 0, -v, 4.5, 8))
+        counted += tm.step(t, EPOCH + t, vs).crossings
+    assert [c.vehicle_id for c in counted] == ([1] if one else [1, 2])
+    assert tm.merged_crossings == (1 if one else 0)
+
+
 def test_a_follower_is_judged_against_the_counted_vehicle_not_its_merged_part():
     """Car 1, its roof 0.37 s behind (merged), a real follower 0.82 s behind car 1 (0.45 s behind the
     roof), all at 67 km/h: the follower counts."""
