@@ -127,12 +127,12 @@ class SiteZones:
                 )
             )
         self.camera = camera_from_homography(H, self.width, self.height)
-        self.k_max = _k_max(self.camera)
+        self.k_max = top_gain(self.camera)
         # lengths undo heights with an off-centre camera too (see placed_camera); the tracker does not
         self.length_camera = self.camera
         if self.camera is None and (placed := placed_camera(H, self.width, self.height)) is not None:
             self.length_camera = placed[:3]
-        self.length_k_max = _k_max(self.length_camera)
+        self.length_k_max = top_gain(self.length_camera)
         self.lane_image = self._paint("polygon_px")  # 0 = no lane, else LaneZones.index
         self.detection_image = self._paint("detection_px")
         self.exit_image = self._paint("exit_px")
@@ -207,7 +207,7 @@ def _gain(camera: tuple[float, float, float] | None, height_m: float) -> float |
     return h / (h - height_m) if h > height_m + 0.5 else None
 
 
-def _k_max(camera: tuple[float, float, float] | None) -> float:
+def top_gain(camera: tuple[float, float, float] | None) -> float:
     """How many times further a vehicle's top is seen than the road under it, at most (see MAX_GAIN)."""
     k = _gain(camera, TALLEST_M)
     return MAX_GAIN if k is None else min(MAX_GAIN, k)

@@ -376,27 +376,67 @@ def test_a_second_front_closer_than_a_car_can_follow_is_the_same_vehicle(speed, 
     assert [c.vehicle_id for c in counted] == ([1] if one else [1, 2])
 
 
-@pytest.mark.parametrize("speed, ratio, lag, one", [(20.0, 1.4, 0.75, True), (20.0, 1.2, 1.5, False),
-                                                    (20.0, 1.05, 0.75, False), (8.0, 1.4, 0.75, False)])
-def test_a_front_that_would_run_into_the_vehicle_counted_before_it_is_that_vehicles_raised_part(speed, ratio, lag,
-                                                                                                  one):
-    """A truck's box top, projected by its height, crosses the count line 0.72 s after the truck's front at 1.4 times
-    its speed (20 m/s, reported 4.5 m long): 10 m apart and closing at 8 m/s, a follower would run into it within
-    1.2 s (CLOSING_S: 2 s), so it is the truck's part: one count. A car 1.5 s behind at 1.2 times the speed would
-    close the 25 m in 6.3 s, one 5 % faster the 10 m in 10 s: they count. Below CLOSING_MIN_MPS (at 8 m/s) a faster
-    follower may be pulling away from a queue: it counts."""
-    tm = TrafficMeasures(make_site())
+def _two_fronts(tm: TrafficMeasures, speed: float, length: float, ratio: float, lag: float, lane: int = 1,
+                frames: int = 60) -> list:
+    """Vehicle 1 (this long, at speed) and vehicle 2 (4.5 m, ratio times as fast, lag s later) drive through the
+    count line of lane 1 (approaching, 50 m) or lane 2 (receding, 40 m) of make_site's site; their crossings (both
+    still tracked at the end)."""
+    sign, c = (-1.0, 50.0) if lane == 1 else (1.0, 40.0)
     counted = []
-    for i in range(150):
+    for i in range(frames):
         t = i * 0.04
         vs = []
-        for vid, t0, v in ((1, 0.0, speed), (2, lag, ratio * speed)):
-            y = 52.0 - v * (t - t0)
-            if y < 60.0:
-                vs.append(VehicleState(vid, t, -2.5, y, y + 4.5, 0, -v, 4.5, 8))
+        for vid, t0, v, n in ((1, 0.0, speed, length), (2, lag, ratio * speed, 4.5)):
+            front = c - sign * 2.0 + sign * v * (t - t0)  # 2 m short of the line at t0
+            if abs(front - c) < 10.0:
+                vs.append(VehicleState(vid, t, -2.5 if lane == 1 else 2.5, front, front - sign * n, 0, sign * v, n, 8))
         counted += tm.step(t, EPOCH + t, vs).crossings
+    return counted
+
+
+@pytest.mark.parametrize("speed, length, ratio, lag, lane, one", [
+    (20.0, 4.5, 1.4, 0.75, 1, True),  # 10 m apart, closing at 8 m/s: 1.2 s
+    (20.0, 4.5, 1.2, 1.5, 1, False),  # 25 m at 4 m/s: 6.3 s
+    (20.0, 4.5, 1.3, 0.78, 1, True),  # 11.2 m at 6 m/s: 1.87 s
+    (20.0, 4.5, 1.3, 0.87, 1, False),  # 13 m at 6 m/s: 2.17 s
+    (20.0, 10.0, 1.12, 0.6, 1, True),  # 1.9 m behind a 10 m truck at 2.4 m/s
+    (20.0, 10.0, 1.08, 0.6, 1, False),  # ... 8 % faster: below CLOSING_K
+    (12.1, 4.5, 1.4, 0.75, 1, True),
+    (11.9, 4.5, 1.4, 0.75, 1, False),  # below CLOSING_MIN_MPS: may be pulling away from a queue
+    (20.0, 4.5, 2.6, 0.6, 1, False),  # faster than any vehicle's top is magnified (top_gain: 2.5 here)
+    (20.0, 4.5, 1.4, 0.75, 2, True),  # receding: a part's front (its near end plus 4.5 m) short of a truck's
+])
+def test_a_front_that_would_run_into_the_vehicle_counted_before_it_is_that_vehicles_raised_part(
+        speed, length, ratio, lag, lane, one):
+    """A truck's box top, projected by its height, crosses an approaching lane's count line 0.72 s after the truck's
+    front at 1.4 times its speed (20 m/s, reported 4.5 m long): 10 m apart and closing at 8 m/s, a follower would
+    run into it within 1.2 s (CLOSING_S: 2 s), so it is the truck's part: one count, and the truck's family (its
+    Edie time counts once). Likewise on a receding lane. The bounds: 2 s, CLOSING_K (1.1) behind a 10 m truck, the
+    truck at CLOSING_MIN_MPS (12 m/s), the camera's greatest height magnification."""
+    tm = TrafficMeasures(make_site())
+    counted = _two_fronts(tm, speed, length, ratio, lag, lane)
     assert [c.vehicle_id for c in counted] == ([1] if one else [1, 2])
     assert tm.merged_crossings == (1 if one else 0)
+    if one:
+        assert tm.tracks[2].family == 1
+
+
+def test_a_vehicle_changing_lanes_over_staggered_count_lines_is_no_raised_part():
+    """Car 2, counted in lane 1 (its line at 50 m), changes to lane 2 (line at 40 m) and crosses that line 0.58 s
+    after car 1, 1.47 times as fast (a time to collision of 0.6 s): it was counted as a vehicle already, so it is no
+    raised part of car 1; it counts in both lanes (as on staggered loops) and keeps its Edie time."""
+    lanes = [{"id": i, "direction": "approaching", "polygon_m": [[x0, 0], [x0 + 3.5, 0], [x0 + 3.5, 100], [x0, 100]],
+              "region_y_m": [20.0, 80.0], "count_y_m": c} for i, x0, c in ((1, -3.5, 50.0), (2, 0.0, 40.0))]
+    tm = TrafficMeasures(make_site(lanes=lanes, loops=[]))
+    counted = []
+    for i in range(120):
+        t = i * 0.04
+        y1, y2 = 45.0 - 15.0 * t, 60.0 - 22.0 * t  # car 1 crosses 40 m at 0.33 s; car 2 50 m at 0.45 s, 40 m at 0.91 s
+        vs = [VehicleState(1, t, 1.75, y1, y1 + 4.5, 0, -15.0, 4.5, 8),
+              VehicleState(2, t, -1.75 if y2 > 45.0 else 1.75, y2, y2 + 4.5, 0, -22.0, 4.5, 8)]
+        counted += tm.step(t, EPOCH + t, vs).crossings
+    assert [(c.vehicle_id, c.lane) for c in counted] == [(1, 2), (2, 1), (2, 2)]
+    assert tm.merged_crossings == 0 and tm.tracks[2].family is None
 
 
 def test_a_follower_is_judged_against_the_counted_vehicle_not_its_merged_part():
