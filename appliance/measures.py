@@ -32,7 +32,7 @@ MAX_HEADWAY_S = 0.6
 # an approaching lane it lies further back, and on a receding lane a part's front (its near end plus its own
 # length, shorter than a long vehicle's) short of the vehicle's. A follower that close and that fast is rare
 # (traffic conflict studies flag times to collision under 1.5-3 s); on the synthetic scenes 6 true crossings went
-# with 48 extra ones. Only where that one moved at CLOSING_MIN_MPS or more (out of a queue a follower pulls away
+# with 47 extra ones. Only where that one moved at CLOSING_MIN_MPS or more (out of a queue a follower pulls away
 # faster than the one ahead crossed), and not for a group already counted in another lane (a vehicle changing
 # lanes over staggered count lines).
 CLOSING_K = 1.1
