@@ -9,6 +9,7 @@ import numpy as np
 
 from appliance.config import SiteConfig
 from appliance.edie import EdieAccumulator, back_to_entry, edie_qkv
+from appliance.grouping import ELEVATED_LENGTH_M, FOOT_UNCERTAINTY
 from appliance.lanes import LaneHistory, LaneMap
 from appliance.loops import VirtualLoop, length_class
 from appliance.periods import PERIOD_TOLERANCE_S, PeriodClock
@@ -38,9 +39,9 @@ MAX_HEADWAY_S = 0.6
 CLOSING_K = 1.1
 CLOSING_MIN_MPS = 12.0
 CLOSING_S = 2.0
-# ... and only behind one vehicle: a group measured longer than the longest vehicle (18.75 m) with the along-road
-# scale 25 % out is vehicles run together, its length no measure of the gap behind the last of them
-CLOSING_MAX_LENGTH_M = 18.75 * 1.25
+# ... and only behind one vehicle: a group measured longer than the longest vehicle with the along-road scale at its
+# most out (grouping's) is vehicles run together, its length no measure of the gap behind the last of them
+CLOSING_MAX_LENGTH_M = ELEVATED_LENGTH_M * (1.0 + FOOT_UNCERTAINTY)
 MAX_TRAJECTORY_POINTS = 2000
 MAX_EDIE_SEGMENTS = 3000  # per vehicle (2 minutes at 25 frames/s): what can be taken back
 ENDED_KEEP_S = LOST_AFTER_S  # an ended vehicle is kept this long for a fragment crossing its count line after it
