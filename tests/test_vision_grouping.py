@@ -964,20 +964,25 @@ def test_a_trucks_box_seen_beyond_its_cab_and_over_the_next_lane_joins_it_where_
     assert _counted(seen) == (1 if joined else 2), {k: len(v) for k, v in seen.items()}
 
 
-@pytest.mark.parametrize("speed, joined, counted", [(9.0, False, 2), (9.0, True, 1), (16.0, False, 1)])
-def test_in_slow_traffic_a_car_closing_in_the_next_lane_is_no_top_of_the_car_ahead(speed, joined, counted):
-    """Congestion: a car in lane 2 runs at 9 m/s, and one in lane 1, further from the camera's foot across the
-    road, comes on 1.4 times as fast 30 m further up. The follower lies in projection just where a part 4 m up on
-    the car would (its place undone by the speed ratio falls on the car's footprint seen: a tall vehicle's top
-    leans into the next lane), and keeps that place while both hold their speeds. Below ADOPT_MIN_MPS that is no
-    evidence of a part seen over the next lane: only the image between the two (the car's body, not road) joins
-    them. At 16 m/s no follower runs 1.4 times as fast as the traffic beside it: the place is enough there (a
-    tall vehicle's top)."""
-    car = (_box(-3.0, -1.2, 40.0, 44.5, 10, 61), -speed, 2, 0, 0.0)
+@pytest.mark.parametrize("speed, length, joined, counted", [
+    (9.0, 4.5, False, 2), (9.0, 4.5, True, 1), (9.0, 10.0, False, 2),
+    (16.0, 4.5, False, 2), (16.0, 4.5, True, 1), (16.0, 10.0, False, 1),
+])
+def test_a_car_closing_in_the_next_lane_is_a_top_only_of_a_tall_vehicle_or_where_the_image_joins_them(
+        speed, length, joined, counted):
+    """A vehicle in lane 2 and one in lane 1, further from the camera's foot across the road, coming on 1.4 times
+    as fast 30 m further up. The follower lies in projection just where a part 4 m up on the vehicle would (its
+    place undone by the speed ratio falls on the footprint seen: a tall vehicle's top leans into the next lane),
+    and keeps that place while both hold their speeds. Only a tall vehicle's top is seen over the next lane, and a
+    tall vehicle is long: a car's (4.5 m) is not, so there only the image between the two (the vehicle's body,
+    not road) joins them. In congestion (below ADOPT_MIN_MPS) the same holds of a long vehicle: a follower there
+    may run 1.4 times as fast as the traffic beside it. At 16 m/s none does, and beside a 10 m vehicle the place
+    is enough (a truck's top)."""
+    car = (_box(-3.0, -1.2, 40.0, 40.0 + length, 10, 61), -speed, 2, 0, 0.0)
     ahead = _run([car], lanes=LEFT_OF_CAMERA, joined=joined)
     cx, cy, _ = SiteZones(parse_site(site_dict(lanes=LEFT_OF_CAMERA))).camera
     k = 1.4
-    y0 = cy + k * (40.0 + 2.0 - cy)  # 2 m behind the car's front once k is undone
+    y0 = cy + k * (40.0 + 2.0 - cy)  # 2 m behind the vehicle's front once k is undone
     follower = (_box(-4.8, -3.8, y0, y0 + 4.0, 8, 62), -speed * k, 1, 12, 0.0)
     seen = _run([car, follower], lanes=LEFT_OF_CAMERA, joined=joined)
     assert _counted(ahead) == 1 and cx == pytest.approx(0.0, abs=0.1)
