@@ -228,9 +228,9 @@ def track_step(img, Hm, Hinv, off_x, off_y, dt, alive, px, s, P, tmpl, age, miss
             px[i, 0] = u
             px[i, 1] = v
             ncc_out[i] = best
-            # a velocity beyond any vehicle's is never corrected while the feature misses (a new corner's one-frame
-            # flow matched to something else): it would carry the feature tens of metres a frame
-            if miss[i] > max_miss or VX * VX + VY * VY > max_speed * max_speed:
+            # only a new corner's one-frame flow can be this fast (a match leaving it so kills it below); never
+            # corrected while the corner misses, it would carry it on at that speed
+            if miss[i] > max_miss or np.sqrt(VX * VX + VY * VY) > max_speed:
                 alive[i] = False
             continue
         if np.sqrt(nVX * nVX + nVY * nVY) > max_speed:

@@ -965,8 +965,8 @@ def test_a_trucks_box_seen_beyond_its_cab_and_over_the_next_lane_joins_it_where_
 
 
 @pytest.mark.parametrize("speed, length, joined, counted", [
-    (9.0, 4.5, False, 2), (9.0, 4.5, True, 1), (9.0, 10.0, False, 2),
-    (16.0, 4.5, False, 2), (16.0, 4.5, True, 1), (16.0, 10.0, False, 1),
+    (9.0, 4.5, False, 2), (9.0, 4.5, True, 1), (9.0, 12.0, False, 2),
+    (16.0, 4.5, False, 2), (16.0, 4.5, True, 1), (16.0, 12.0, False, 1),
 ])
 def test_a_car_closing_in_the_next_lane_is_a_top_only_of_a_tall_vehicle_or_where_the_image_joins_them(
         speed, length, joined, counted):
@@ -974,9 +974,9 @@ def test_a_car_closing_in_the_next_lane_is_a_top_only_of_a_tall_vehicle_or_where
     as fast 30 m further up. The follower lies in projection just where a part 4 m up on the vehicle would (its
     place undone by the speed ratio falls on the footprint seen: a tall vehicle's top leans into the next lane),
     and keeps that place while both hold their speeds. Only a tall vehicle's top is seen over the next lane, and a
-    tall vehicle is long: a car's (4.5 m) is not, so there only the image between the two (the vehicle's body,
+    tall vehicle is long: a car (4.5 m) is not, so there only the image between the two (the vehicle's body,
     not road) joins them. In congestion (below ADOPT_MIN_MPS) the same holds of a long vehicle: a follower there
-    may run 1.4 times as fast as the traffic beside it. At 16 m/s none does, and beside a 10 m vehicle the place
+    may run 1.4 times as fast as the traffic beside it. At 16 m/s none does, and beside a 12 m vehicle the place
     is enough (a truck's top)."""
     car = (_box(-3.0, -1.2, 40.0, 40.0 + length, 10, 61), -speed, 2, 0, 0.0)
     ahead = _run([car], lanes=LEFT_OF_CAMERA, joined=joined)

@@ -495,14 +495,14 @@ def test_a_feature_missing_its_match_at_a_speed_no_vehicle_reaches_is_dropped():
     img = _texture(5)
     other = _texture(6)  # the templates come from another picture: nothing matches
     n = 4
-    px = np.array([[60.0, 60.0], [80.0, 60.0], [100.0, 60.0], [70.0, 80.0]])
+    px = np.array([[60.0, 60.0], [80.0, 60.0], [100.0, 60.0], [80.0, 40.0]])
     tmpl = np.zeros((n, 9, 9), np.float32)
     s = np.zeros((n, 4))
     for i in range(n):
         extract_template(other, int(px[i, 0]), int(px[i, 1]), tmpl[i])
         s[i, :2] = ref._project(Hm, px[i, 0], px[i, 1])
     max_speed = 60.0
-    s[:, 3] = [-5.0, -max_speed + 1.0, -max_speed - 1.0, -900.0]
+    s[:, 3] = [-5.0, -max_speed + 1.0, -max_speed - 1.0, -300.0]  # each predicted inside the image
     P = np.tile(np.diag([0.05, 0.05, 4.0, 4.0]), (n, 1, 1))
     alive = np.ones(n, np.bool_)
     miss = np.zeros(n, np.int32)
