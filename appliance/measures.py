@@ -14,7 +14,7 @@ from appliance.lanes import LaneHistory, LaneMap
 from appliance.loops import VirtualLoop, length_class
 from appliance.periods import PERIOD_TOLERANCE_S, PeriodClock
 from appliance.types import ChannelState, LaneAggregate, LoopEvent, LoopSight, VehicleRecord, VehicleState
-from appliance.zones import placed_camera, top_gain
+from appliance.zones import length_camera, top_gain
 
 LOST_AFTER_S = 2.0  # a vehicle not seen for this long (and never finished) is forgotten
 # Two fronts crossing one lane's count line closer in time than a car can follow another are one vehicle
@@ -226,9 +226,9 @@ class TrafficMeasures:
         self.lanes = LaneMap(site)
         self.lanes.lanes_at(np.zeros(1), np.zeros(1))  # compile (or load) the kernel before the first frame
         self.count_y = {lane.id: float(lane.count_y_m) for lane in site.lanes}
-        placed = None if site.homography is None else placed_camera(site.homography, site.source.width,
-                                                                      site.source.height)
-        self.top_gain = top_gain(None if placed is None else placed[:3])  # see CLOSING_K
+        cam = None if site.homography is None else length_camera(site.homography, site.source.width,
+                                                                   site.source.height)
+        self.top_gain = top_gain(cam)  # see CLOSING_K
         self.region = {lane.id: (float(lane.region_y_m[0]), float(lane.region_y_m[1])) for lane in site.lanes}
         self.edie = EdieAccumulator(self.lanes.ids, self.region, self.period_s)
         self.clock = PeriodClock(self.period_s)

@@ -128,10 +128,7 @@ class SiteZones:
             )
         self.camera = camera_from_homography(H, self.width, self.height)
         self.k_max = top_gain(self.camera)
-        # lengths undo heights with an off-centre camera too (see placed_camera); the tracker does not
-        self.length_camera = self.camera
-        if self.camera is None and (placed := placed_camera(H, self.width, self.height)) is not None:
-            self.length_camera = placed[:3]
+        self.length_camera = self.camera if self.camera is not None else length_camera(H, self.width, self.height)
         self.length_k_max = top_gain(self.length_camera)
         self.lane_image = self._paint("polygon_px")  # 0 = no lane, else LaneZones.index
         self.detection_image = self._paint("detection_px")
@@ -255,6 +252,15 @@ def camera_from_homography(H: Homography, width: int, height: int) -> tuple[floa
     if cos > MIN_AXES_COSINE and w1 > 0 and max(w1 / w, w / w1) > MAX_FOCAL_DISAGREEMENT ** 2:
         return None
     return _camera_pose(np.diag([s, s, 1.0]) @ A, s / np.sqrt(w))
+
+
+def length_camera(H: Homography, width: int, height: int) -> tuple[float, float, float] | None:
+    """The camera (foot X, Y, height) that lengths and tops' speeds are judged with: the centred one, else one
+    placed off-centre (see placed_camera); the tracker undoes heights only with the centred one."""
+    cam = camera_from_homography(H, width, height)
+    if cam is None and (placed := placed_camera(H, width, height)) is not None:
+        cam = placed[:3]
+    return cam
 
 
 def placed_camera(H: Homography, width: int, height: int) -> tuple[float, float, float, float] | None:
