@@ -226,6 +226,16 @@ FIT_TRAVEL_SD_M = 1.5  # standard deviation of the near end's distance over the 
 # The far end is the furthest fitted feature with another this close (a lone one further out is mostly a
 # misfit: a feature that slid along an edge, or one on the road in the vehicle's shadow)
 FIT_NEIGHBOUR_M = 1.0
+# A vehicle measured longer than the longest one with the along-road scale at its most out is two or more run
+# together (a follower linked to it through corners found between the two): it is cut at the widest gap of at least
+# SPLIT_GAP_M between its fitted features' places on the road that leaves a vehicle's worth of them on each side and
+# no more than LONGEST_M in front (the others go with the fitted feature nearest them). The part behind loses the
+# vehicle's id and its links across the cut, no new corner links it to the vehicle again (see unbridge), and it never
+# joins that vehicle as a part: it becomes a vehicle of its own.
+LONGEST_M = ELEVATED_LENGTH_M * (1.0 + FOOT_UNCERTAINTY)
+SPLIT_GAP_M = 2.0
+SPLIT_LAG = 0.05  # ... while the part behind keeps up with the near end (its fits' slope at least 1 - this)
+CUT_OWNER = 1 << 40  # (unbridge's owner of a part cut off vehicle v: CUT_OWNER + v)
 # A vehicle none of whose fitted features lies this far behind its near end shows nothing of its extent (at
 # night only its lights and their beam on the road ahead): it is reported at a typical car's length.
 FIT_MIN_EXTENT_M = 0.5
@@ -883,6 +893,7 @@ class Grouper:
         # the sums of d (the near end's distance from the camera's foot), q (its own), d * d and d * q
         self.fit = np.zeros((n, 5), np.float64)
         self.fit_vid = np.full(n, -1, np.int64)  # the group that fit is for
+        self.cut_off = np.full(n, -1, np.int64)  # per slot: the vehicle it was cut off (see LONGEST_M), or -1
         # per slot: a feature of a shadow joined to its vehicle (see _side_host), which keeps it from being
         # found as a vehicle again but is no part of its place on the road
         self.shade = np.zeros(n, np.bool_)
@@ -920,6 +931,7 @@ class Grouper:
         self.state[:, slots] = UNSEEN
         self.fvid[slots] = -1
         self.fit_vid[slots] = -1
+        self.cut_off[slots] = -1
         self.late[slots] = False
         self.shade[slots] = False
         self.lifted[slots] = False if lifted is None else lifted
@@ -942,6 +954,7 @@ class Grouper:
         parts = self._elevated_parts(reported)
         ids = [vid for vid in reported if not self._on_trial(self.tracks[vid], t) and vid not in parts]
         owner = np.where(np.isin(self.fvid, ids), self.fvid, -1)
+        owner = np.where((owner < 0) & (self.cut_off >= 0), CUT_OWNER + self.cut_off, owner)
         new = live[age[live] == 0]
         kept = unbridge(new, live, owner, s, self.state) if len(new) else None
         components(live, self.state, self.labels)
@@ -1170,6 +1183,8 @@ class Grouper:
                 tr.start_y = rep_y
             tr.near_slot, tr.near_row = int(rep), float(px[rep, 1])
             g = self._ground_length(tr, sign, body, s, age, rep_y, length)
+            if tr.reported and sign < 0 and g > LONGEST_M:
+                g = min(g, self._split_off(tr, members, s, rep_y))
             if sign < 0:
                 front, rear = rep_y, rep_y + length
                 tr.ground = (g, rep_y + g, sign)
@@ -1222,6 +1237,8 @@ class Grouper:
         # fragments are judged once every vehicle of this frame is up to date
         for tr, st, sign, members, length in pending:
             host = self._host_of(tr, st, sign, members, shadow, joined)
+            if host is not None and host >= 0 and np.any(self.cut_off[members] == host):
+                host = None  # cut off that vehicle (see LONGEST_M)
             if host == GHOST:  # the rest of a vehicle already finalised
                 self._retire_quietly(tr.id, members, retire)
                 continue
@@ -1484,6 +1501,43 @@ class Grouper:
         if g < SHORTEST_CAR_M and tr.x_hi - tr.x_lo >= SINGLE_TRACK_MAX_WIDTH_M:
             return NOMINAL_LENGTH_M  # wider than a motorcycle, shorter than any car: only its front is seen
         return g
+
+    def _split_off(self, tr: VehicleTrack, members: np.ndarray, s: np.ndarray, near_y: float) -> float:
+        """Cut a vehicle measured longer than LONGEST_M in two (see LONGEST_M); its length in front of the cut,
+        or infinity where it was not cut."""
+        fit = self.fit[members]
+        n = np.maximum(fit[:, 0], 1.0)
+        var = fit[:, 3] / n - (fit[:, 1] / n) ** 2
+        fitted = (self.fit_vid[members] == tr.id) & (fit[:, 0] >= FIT_FRAMES) & (var >= FIT_TRAVEL_SD_M ** 2)
+        if np.count_nonzero(fitted) < 2 * self.min_report:
+            return np.inf
+        f, nf, vf = fit[fitted], n[fitted], var[fitted]
+        k_raw = (f[:, 4] / nf - f[:, 1] * f[:, 2] / (nf * nf)) / vf
+        places = f[:, 2] / nf / np.clip(k_raw, 1.0, self.length_k_max) - f[:, 1] / nf
+        order = np.argsort(places)
+        p = places[order]
+        gaps = np.diff(p)
+        cut_at = np.arange(1, len(p))  # a cut before p[cut_at]
+        ok = ((cut_at >= self.min_report) & (len(p) - cut_at >= self.min_report) & (gaps >= SPLIT_GAP_M)
+              & (p[cut_at - 1] <= LONGEST_M))
+        if not ok.any():
+            return np.inf
+        c = cut_at[ok][np.argmax(gaps[ok])]
+        if np.median(k_raw[order[c:]]) < 1.0 - SPLIT_LAG:
+            return np.inf  # the part behind falls back: the two are parting (the pair graph sees to that)
+        cut = 0.5 * (p[c - 1] + p[c])
+        fs, others = members[fitted], members[~fitted]
+        behind = np.zeros(len(members), np.bool_)
+        behind[fitted] = places > cut
+        if len(others):  # each goes with the fitted feature nearest it (as projected on the road)
+            d = np.abs(s[others, 1][:, None] - s[fs, 1][None, :]) + np.abs(s[others, 0][:, None] - s[fs, 0][None, :])
+            behind[~fitted] = (places > cut)[np.argmin(d, axis=1)]
+        rear, front = members[behind], members[~behind]
+        self.state[np.minimum.outer(rear, front), np.maximum.outer(rear, front)] = APART
+        self.fvid[rear] = -1
+        self.cut_off[rear] = tr.id
+        tr.adopted = min(tr.adopted, cut)
+        return cut
 
     @staticmethod
     def _grounded(st: VehicleState, ground: tuple[float, float, int] | None) -> VehicleState:

@@ -112,13 +112,7 @@ def test_replay_and_evaluate_real_clip(site_file, counts_file, tmp_path):
 CENTRING_PAD_PX = 232
 
 
-# Centred, lane 2 reads 8 of 10: the grey SUV of frame 891 rides in one 33 m group with the sedan 1.4 s ahead of it,
-# and the SUV of frame 1654 is lost 1 s behind a sedan. Until measures' raised-part rule (CLOSING_S) the box truck's
-# top, counted apart 0.86 s behind it at 1.44 times its speed, made up one of the two.
-CENTRED_LANE_2_MISSES = pytest.mark.xfail(strict=True, reason="two lane-2 followers merged or lost (see above)")
-
-
-@pytest.mark.parametrize("kind", ["reversed", pytest.param("centred", marks=CENTRED_LANE_2_MISSES),
+@pytest.mark.parametrize("kind", ["reversed", "centred",
                                   pytest.param("dark", marks=pytest.mark.slow),
                                   pytest.param("drift", marks=pytest.mark.slow),
                                   pytest.param("repeat", marks=pytest.mark.slow),
@@ -132,9 +126,11 @@ def test_real_clip_variants_count_within_one_per_lane(counts_file, tmp_path, kin
     Dark: roofs seen as groups of their own crossed 0.37 s behind their cars (lane 1 +2 before the
     speed-dependent shortest headway). Centred: with heights undone (an 8.1 m camera, roofs 1.2 times as fast
     in projection), roofs reported apart from their cars made lane 2 +3 (4 extras) until a feature found
-    between the two could join them (PART_MIN_MPS). Rain: streaks left one auto-picked fiducial, whose false
-    matches ran the stabiliser's offset away by 100 px on this fixed camera (lanes 4 of 17 and 2 of 10) until a
-    lone fiducial could move it 1 px a frame at most."""
+    between the two could join them (PART_MIN_MPS); lane 2 then read 8 of 10 until a vehicle measured longer
+    than any is cut in two (grouping.LONGEST_M: the grey SUV of frame 891 rode in one 33 m group with the sedan
+    1.4 s ahead of it). Rain: streaks left one auto-picked fiducial, whose false matches ran the stabiliser's
+    offset away by 100 px on this fixed camera (lanes 4 of 17 and 2 of 10) until a lone fiducial could move it
+    1 px a frame at most."""
     clip = (make_variant(counts_file, tmp_path, "original", pad_right=CENTRING_PAD_PX) if kind == "centred"
             else make_variant(counts_file, tmp_path, kind))
     site = tmp_path / "site.toml"

@@ -1295,3 +1295,34 @@ def test_a_vehicle_in_view_at_the_start_counts_only_if_it_crosses_once_its_featu
     roof = (_box(-1.6, 1.6, roof_m, roof_m + 1.0, 6, 5), -25.0, 1, 1, 1.4)
     seen = _run([roof], frames=40)
     assert _counted(seen) == counted, _firsts(seen)
+
+
+@pytest.mark.parametrize("speed, frames", [(-15.0, 120), (-3.0, 420)])
+def test_a_vehicle_measured_longer_than_any_is_cut_at_the_widest_gap_between_the_two_it_holds(
+        monkeypatch, speed, frames):
+    """A car and the one 17 m behind it at one speed (at speed, or crawling), held in one group by three corners
+    found on what lies between them (each within the connection distance of the next): one vehicle longer than
+    any (LONGEST_M), whose follower never counts. Its features, placed on the road by their fits, are cut at the
+    widest gap between them (4.8 m, two corners behind the car: the car keeps those two, and its id), and the
+    follower counts as a vehicle of its own; without the rule the two count once. A 15 m bus whose features up
+    to 2 m high reach 28 m in projection is measured on the road and stays whole."""
+    from appliance import grouping
+
+    gaps = np.array([3.5, 4.5, 4.8, 4.2])  # the car's rear, three corners, the follower's front
+    ys = 44.5 + np.cumsum(gaps)
+    leader = (np.vstack([_box(-1.0, 1.0, 40.0, 44.5, 8, 31), [[0.0, 44.5]]]), speed, 2, 0, 0.0)
+    follower = (np.vstack([[[0.0, ys[-1]]], _box(-1.0, 1.0, ys[-1], ys[-1] + 4.5, 8, 32)]), speed, 2, 0, 0.0)
+    chain = (np.column_stack([np.zeros(3), ys[:-1]]), speed, 2, 0, 0.0)
+    assert ys[-1] + 4.5 - 40.0 > grouping.LONGEST_M and gaps.max() < 5.0  # too long for one; linked in a chain
+    seen = _run([leader, follower, chain], frames=frames)
+    assert _counted(seen) == 2, _firsts(seen)
+    car = seen[min(seen)]  # the first vehicle reported: the car with all of them at first
+    last = car[-1]
+    assert abs(last.y_front - (40.0 + speed * last.t)) < 1.5 and last.n_features == 9 + 2, last  # and 2 corners
+    monkeypatch.setattr(grouping, "LONGEST_M", np.inf)
+    seen = _run([leader, follower, chain], frames=frames)
+    assert _counted(seen) == 1, _firsts(seen)
+    monkeypatch.undo()
+    bus = [(_box(-1.2, 1.2, 40.0, 55.0, 6, 33 + i), -15.0, 2, 0, h) for i, h in enumerate((0.0, 0.5, 1.0, 1.5, 2.0))]
+    seen = _run(bus, frames=120)
+    assert _counted(seen) == 1, _firsts(seen)
