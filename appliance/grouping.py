@@ -227,14 +227,17 @@ FIT_TRAVEL_SD_M = 1.5  # standard deviation of the near end's distance over the 
 # misfit: a feature that slid along an edge, or one on the road in the vehicle's shadow)
 FIT_NEIGHBOUR_M = 1.0
 # A vehicle measured longer than the longest one with the along-road scale at its most out is two or more run
-# together (a follower linked to it through corners found between the two): it is cut at the widest gap of at least
-# SPLIT_GAP_M between its fitted features' places on the road that leaves a vehicle's worth of them on each side and
-# no more than LONGEST_M in front (the others go with the fitted feature nearest them). The part behind loses the
-# vehicle's id and its links across the cut, no new corner links it to the vehicle again (see unbridge), and it never
-# joins that vehicle as a part: it becomes a vehicle of its own.
+# together (a follower linked to it through corners found between the two): where a fitted feature lies that far
+# behind its near end on the road, it is cut at the widest gap of at least SPLIT_GAP_M between its fitted features'
+# places that leaves a vehicle's worth of them on each side and no more than LONGEST_M in front, if the part behind
+# keeps up with the near end (the median of its fits' slopes at least 1 - SPLIT_LAG: a follower falling back is
+# parting from it anyway). Its other features go with the fitted one nearest them, its shadow and its tops seen
+# off the lanes stay with it. The part behind loses the vehicle's id and its links across the cut, new corners do
+# not link the two again while the vehicle is a settled one (see _components), and the part never joins that
+# vehicle as a fragment: it becomes a vehicle of its own.
 LONGEST_M = ELEVATED_LENGTH_M * (1.0 + FOOT_UNCERTAINTY)
 SPLIT_GAP_M = 2.0
-SPLIT_LAG = 0.05  # ... while the part behind keeps up with the near end (its fits' slope at least 1 - this)
+SPLIT_LAG = 0.05
 CUT_OWNER = 1 << 40  # (unbridge's owner of a part cut off vehicle v: CUT_OWNER + v)
 # A vehicle none of whose fitted features lies this far behind its near end shows nothing of its extent (at
 # night only its lights and their beam on the road ahead): it is reported at a typical car's length.
@@ -940,7 +943,7 @@ class Grouper:
                     ) -> None:
         """Label the connected components of the pair graph (self.labels). With the camera known, no feature
         found this frame (age 0: born, or never matched since) joins two reported vehicles (``reported``: their
-        ids, sorted; see unbridge):
+        ids, sorted; see unbridge), nor a vehicle and a part cut off it (see LONGEST_M):
         parts of one vehicle reported apart then join it as fragments, by their height. That holds for a
         vehicle with few features left too (a queued car whose other features were lost: joined, its count
         would go), unless it may still turn out to be a part of another vehicle of its lane: small, reported
@@ -1184,7 +1187,9 @@ class Grouper:
             tr.near_slot, tr.near_row = int(rep), float(px[rep, 1])
             g = self._ground_length(tr, sign, body, s, age, rep_y, length)
             if tr.reported and sign < 0 and g > LONGEST_M:
-                g = min(g, self._split_off(tr, members, s, rep_y))
+                cut = self._split_off(tr, members, s)
+                if cut is not None:  # the part behind is a group of its own from the next frame
+                    members, g = members[cut[0]], min(g, cut[1])
             if sign < 0:
                 front, rear = rep_y, rep_y + length
                 tr.ground = (g, rep_y + g, sign)
@@ -1237,8 +1242,8 @@ class Grouper:
         # fragments are judged once every vehicle of this frame is up to date
         for tr, st, sign, members, length in pending:
             host = self._host_of(tr, st, sign, members, shadow, joined)
-            if host is not None and host >= 0 and np.any(self.cut_off[members] == host):
-                host = None  # cut off that vehicle (see LONGEST_M)
+            if host is not None and self._cut_off(members, host):
+                host = None
             if host == GHOST:  # the rest of a vehicle already finalised
                 self._retire_quietly(tr.id, members, retire)
                 continue
@@ -1279,7 +1284,7 @@ class Grouper:
         for vid in self._passed_through(t):
             self._retire_quietly(vid, groups[vid], retire)
             out = [st for st in out if st.id != vid]
-        for part, host in self._rigid_parts(t):
+        for part, host in [(a, b) for a, b in self._rigid_parts(t) if not self._cut_off(groups[a], b)]:
             st = next((o for o in out if o.id == part), None)
             out = [o for o in out if o.id != part]
             self._absorb(groups[part], host, groups[host])
@@ -1290,7 +1295,7 @@ class Grouper:
             med = group_medians(members, np.cumsum([0] + [len(m) for _, m in small]), s, age)
         on_road = [a for a, (_, m) in enumerate(small) if not self.lifted[m].all()]  # tops take no late links
         self.late = self._late_slots(t, [small[a] for a in on_road], med[on_road] if small else None, age)
-        for vid, members, host in self._adopted(t, small, med, joined):
+        for vid, members, host in [a for a in self._adopted(t, small, med, joined) if not self._cut_off(a[1], a[2])]:
             self._absorb(members, host, groups[host], shade=True)  # high up: no part of its place on the road
             self.tracks.pop(vid)
         slots = np.concatenate(retire) if retire else np.zeros(0, np.int64)
@@ -1502,29 +1507,31 @@ class Grouper:
             return NOMINAL_LENGTH_M  # wider than a motorcycle, shorter than any car: only its front is seen
         return g
 
-    def _split_off(self, tr: VehicleTrack, members: np.ndarray, s: np.ndarray, near_y: float) -> float:
-        """Cut a vehicle measured longer than LONGEST_M in two (see LONGEST_M); its length in front of the cut,
-        or infinity where it was not cut."""
+    def _split_off(self, tr: VehicleTrack, members: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, float] | None:
+        """Cut a vehicle measured longer than LONGEST_M in two (see LONGEST_M): the mask of its members in front of
+        the cut and how far behind its near end the cut lies, or None where it was not cut."""
         fit = self.fit[members]
         n = np.maximum(fit[:, 0], 1.0)
         var = fit[:, 3] / n - (fit[:, 1] / n) ** 2
         fitted = (self.fit_vid[members] == tr.id) & (fit[:, 0] >= FIT_FRAMES) & (var >= FIT_TRAVEL_SD_M ** 2)
         if np.count_nonzero(fitted) < 2 * self.min_report:
-            return np.inf
+            return None
         f, nf, vf = fit[fitted], n[fitted], var[fitted]
         k_raw = (f[:, 4] / nf - f[:, 1] * f[:, 2] / (nf * nf)) / vf
         places = f[:, 2] / nf / np.clip(k_raw, 1.0, self.length_k_max) - f[:, 1] / nf
         order = np.argsort(places)
         p = places[order]
+        if p[-1] <= LONGEST_M:
+            return None
         gaps = np.diff(p)
         cut_at = np.arange(1, len(p))  # a cut before p[cut_at]
         ok = ((cut_at >= self.min_report) & (len(p) - cut_at >= self.min_report) & (gaps >= SPLIT_GAP_M)
               & (p[cut_at - 1] <= LONGEST_M))
         if not ok.any():
-            return np.inf
+            return None
         c = cut_at[ok][np.argmax(gaps[ok])]
         if np.median(k_raw[order[c:]]) < 1.0 - SPLIT_LAG:
-            return np.inf  # the part behind falls back: the two are parting (the pair graph sees to that)
+            return None
         cut = 0.5 * (p[c - 1] + p[c])
         fs, others = members[fitted], members[~fitted]
         behind = np.zeros(len(members), np.bool_)
@@ -1532,12 +1539,17 @@ class Grouper:
         if len(others):  # each goes with the fitted feature nearest it (as projected on the road)
             d = np.abs(s[others, 1][:, None] - s[fs, 1][None, :]) + np.abs(s[others, 0][:, None] - s[fs, 0][None, :])
             behind[~fitted] = (places > cut)[np.argmin(d, axis=1)]
+        behind &= ~(self.shade[members] | self.lifted[members])
         rear, front = members[behind], members[~behind]
         self.state[np.minimum.outer(rear, front), np.maximum.outer(rear, front)] = APART
         self.fvid[rear] = -1
         self.cut_off[rear] = tr.id
         tr.adopted = min(tr.adopted, cut)
-        return cut
+        return ~behind, cut
+
+    def _cut_off(self, members: np.ndarray, host: int | None) -> bool:
+        """Whether a group holds features cut off vehicle host (see LONGEST_M)."""
+        return host is not None and host >= 0 and bool(np.any(self.cut_off[members] == host))
 
     @staticmethod
     def _grounded(st: VehicleState, ground: tuple[float, float, int] | None) -> VehicleState:

@@ -126,9 +126,10 @@ def test_real_clip_variants_count_within_one_per_lane(counts_file, tmp_path, kin
     Dark: roofs seen as groups of their own crossed 0.37 s behind their cars (lane 1 +2 before the
     speed-dependent shortest headway). Centred: with heights undone (an 8.1 m camera, roofs 1.2 times as fast
     in projection), roofs reported apart from their cars made lane 2 +3 (4 extras) until a feature found
-    between the two could join them (PART_MIN_MPS); lane 2 then read 8 of 10 until a vehicle measured longer
-    than any is cut in two (grouping.LONGEST_M: the grey SUV of frame 891 rode in one 33 m group with the sedan
-    1.4 s ahead of it). Rain: streaks left one auto-picked fiducial, whose false matches ran the stabiliser's
+    between the two could join them (PART_MIN_MPS); lane 2 then read 8 of 10 (the grey SUV of frame 891 rode in
+    one 33 m group with the sedan 1.4 s ahead of it, the SUV of frame 1654 was lost 1 s behind a sedan) until a
+    vehicle measured longer than any is cut in two (grouping.LONGEST_M): both count since (the second 5 frames
+    late). Rain: streaks left one auto-picked fiducial, whose false matches ran the stabiliser's
     offset away by 100 px on this fixed camera (lanes 4 of 17 and 2 of 10) until a lone fiducial could move it
     1 px a frame at most."""
     clip = (make_variant(counts_file, tmp_path, "original", pad_right=CENTRING_PAD_PX) if kind == "centred"
