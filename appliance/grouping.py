@@ -1190,6 +1190,7 @@ class Grouper:
                 cut = self._split_off(tr, members, s)
                 if cut is not None:  # the part behind is a group of its own from the next frame
                     members, g = members[cut[0]], min(g, cut[1])
+                    groups[vid] = members
             if sign < 0:
                 front, rear = rep_y, rep_y + length
                 tr.ground = (g, rep_y + g, sign)
@@ -1242,7 +1243,7 @@ class Grouper:
         # fragments are judged once every vehicle of this frame is up to date
         for tr, st, sign, members, length in pending:
             host = self._host_of(tr, st, sign, members, shadow, joined)
-            if host is not None and self._cut_off(members, host):
+            if host is not None and self._was_cut_off(members, host):
                 host = None
             if host == GHOST:  # the rest of a vehicle already finalised
                 self._retire_quietly(tr.id, members, retire)
@@ -1284,7 +1285,7 @@ class Grouper:
         for vid in self._passed_through(t):
             self._retire_quietly(vid, groups[vid], retire)
             out = [st for st in out if st.id != vid]
-        for part, host in [(a, b) for a, b in self._rigid_parts(t) if not self._cut_off(groups[a], b)]:
+        for part, host in [(a, b) for a, b in self._rigid_parts(t) if not self._was_cut_off(groups[a], b)]:
             st = next((o for o in out if o.id == part), None)
             out = [o for o in out if o.id != part]
             self._absorb(groups[part], host, groups[host])
@@ -1295,7 +1296,8 @@ class Grouper:
             med = group_medians(members, np.cumsum([0] + [len(m) for _, m in small]), s, age)
         on_road = [a for a, (_, m) in enumerate(small) if not self.lifted[m].all()]  # tops take no late links
         self.late = self._late_slots(t, [small[a] for a in on_road], med[on_road] if small else None, age)
-        for vid, members, host in [a for a in self._adopted(t, small, med, joined) if not self._cut_off(a[1], a[2])]:
+        adopted = [a for a in self._adopted(t, small, med, joined) if not self._was_cut_off(a[1], a[2])]
+        for vid, members, host in adopted:
             self._absorb(members, host, groups[host], shade=True)  # high up: no part of its place on the road
             self.tracks.pop(vid)
         slots = np.concatenate(retire) if retire else np.zeros(0, np.int64)
@@ -1547,7 +1549,7 @@ class Grouper:
         tr.adopted = min(tr.adopted, cut)
         return ~behind, cut
 
-    def _cut_off(self, members: np.ndarray, host: int | None) -> bool:
+    def _was_cut_off(self, members: np.ndarray, host: int | None) -> bool:
         """Whether a group holds features cut off vehicle host (see LONGEST_M)."""
         return host is not None and host >= 0 and bool(np.any(self.cut_off[members] == host))
 
