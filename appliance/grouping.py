@@ -635,6 +635,27 @@ def assign_ids(live, labels, fvid, next_vid, reported):
 
 
 @njit(cache=True)
+def fitted_places(members, fit, fit_vid, vid, k_max, frames, min_var):
+    """Per member of group vid, from its straight-line fit against the group's near end (see fit_places): its
+    place on the road behind the near end and the fit's slope (its height magnification, not clipped to
+    [1, k_max] as the place's is); NaN for one not fitted (fewer than ``frames`` frames, or a near end whose
+    distance varied less than ``min_var`` over them)."""
+    places = np.full(members.shape[0], np.nan)
+    slopes = np.full(members.shape[0], np.nan)
+    for a in range(members.shape[0]):
+        i = members[a]
+        n = fit[i, 0]
+        if fit_vid[i] != vid or n < frames:
+            continue
+        var = fit[i, 3] / n - (fit[i, 1] / n) ** 2
+        if var < min_var:
+            continue
+        slopes[a] = (fit[i, 4] / n - fit[i, 1] * fit[i, 2] / (n * n)) / var
+        places[a] = fit[i, 2] / n / min(max(slopes[a], 1.0), k_max) - fit[i, 1] / n
+    return places, slopes
+
+
+@njit(cache=True)
 def fit_places(members, age, s, fit, fit_vid, vid, d, cy, k_max, frames, min_var, neighbour):
     """Add this frame to the straight-line fits (see Grouper._ground_length) of a group's settled features
     against its near end, d from the camera's foot along the road (a fit made for another group starts
@@ -642,11 +663,6 @@ def fit_places(members, age, s, fit, fit_vid, vid, d, cy, k_max, frames, min_var
     magnification: the furthest fitted feature with another within ``neighbour``, else their median (of an even
     count, the middle two's means); (NaN, NaN) while none is fitted, or while one not yet fitted lies further
     (a fragment that just joined)."""
-    places = np.empty(members.shape[0])
-    ks = np.empty(members.shape[0])
-    n_ok = 0
-    q_ok = -np.inf
-    q_new = -np.inf
     for a in range(members.shape[0]):
         i = members[a]
         if age[i] < 3:
@@ -661,17 +677,23 @@ def fit_places(members, age, s, fit, fit_vid, vid, d, cy, k_max, frames, min_var
         fit[i, 2] += q
         fit[i, 3] += d * d
         fit[i, 4] += d * q
-        n = fit[i, 0]
-        var = fit[i, 3] / n - (fit[i, 1] / n) ** 2
-        if n >= frames and var >= min_var:
-            cov = fit[i, 4] / n - fit[i, 1] * fit[i, 2] / (n * n)
-            k = min(max(cov / var, 1.0), k_max)
-            places[n_ok] = fit[i, 2] / n / k - fit[i, 1] / n
-            ks[n_ok] = k
+    fitted, slopes = fitted_places(members, fit, fit_vid, vid, k_max, frames, min_var)
+    places = np.empty(members.shape[0])
+    ks = np.empty(members.shape[0])
+    n_ok = 0
+    q_ok = -np.inf
+    q_new = -np.inf
+    for a in range(members.shape[0]):
+        if age[members[a]] < 3:
+            continue
+        q = s[members[a], 1] - cy
+        if np.isnan(fitted[a]):
+            q_new = max(q_new, q)
+        else:
+            places[n_ok] = fitted[a]
+            ks[n_ok] = min(max(slopes[a], 1.0), k_max)
             n_ok += 1
             q_ok = max(q_ok, q)
-        else:
-            q_new = max(q_new, q)
     if n_ok == 0 or q_new > q_ok:
         return np.nan, np.nan
     order = np.argsort(places[:n_ok], kind="mergesort")
@@ -1512,15 +1534,12 @@ class Grouper:
     def _split_off(self, tr: VehicleTrack, members: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, float] | None:
         """Cut a vehicle measured longer than LONGEST_M in two (see LONGEST_M): the mask of its members in front of
         the cut and how far behind its near end the cut lies, or None where it was not cut."""
-        fit = self.fit[members]
-        n = np.maximum(fit[:, 0], 1.0)
-        var = fit[:, 3] / n - (fit[:, 1] / n) ** 2
-        fitted = (self.fit_vid[members] == tr.id) & (fit[:, 0] >= FIT_FRAMES) & (var >= FIT_TRAVEL_SD_M ** 2)
+        places, slopes = fitted_places(members, self.fit, self.fit_vid, tr.id, self.length_k_max, FIT_FRAMES,
+                                       FIT_TRAVEL_SD_M ** 2)
+        fitted = ~np.isnan(places)
         if np.count_nonzero(fitted) < 2 * self.min_report:
             return None
-        f, nf, vf = fit[fitted], n[fitted], var[fitted]
-        k_raw = (f[:, 4] / nf - f[:, 1] * f[:, 2] / (nf * nf)) / vf
-        places = f[:, 2] / nf / np.clip(k_raw, 1.0, self.length_k_max) - f[:, 1] / nf
+        places, slopes = places[fitted], slopes[fitted]
         order = np.argsort(places)
         p = places[order]
         if p[-1] <= LONGEST_M:
@@ -1532,7 +1551,7 @@ class Grouper:
         if not ok.any():
             return None
         c = cut_at[ok][np.argmax(gaps[ok])]
-        if np.median(k_raw[order[c:]]) < 1.0 - SPLIT_LAG:
+        if np.median(slopes[order[c:]]) < 1.0 - SPLIT_LAG:
             return None
         cut = 0.5 * (p[c - 1] + p[c])
         fs, others = members[fitted], members[~fitted]

@@ -151,8 +151,8 @@ class VisionPipeline:
         """Compile (or load from cache) every numba kernel on dummy data, leaving no state behind."""
         from appliance.background import shadow_at, temporal_median
         from appliance.corners import select_spaced
-        from appliance.grouping import (alone_groups, assign_ids, components, fit_places, group_medians,
-                                        group_summary, isolate, pair_update, unbridge)
+        from appliance.grouping import (alone_groups, assign_ids, components, fit_places, fitted_places,
+                                        group_medians, group_summary, isolate, pair_update, unbridge)
         from appliance.tracker import init_features, track_step
 
         p = self.p
@@ -182,6 +182,7 @@ class VisionPipeline:
         labels, vids = np.zeros(n, np.int64), np.full(n, -1, np.int64)
         assign_ids(live, labels, vids, 1, np.zeros(0, np.int64))
         fit_places(live, np.full(n, 3, np.int32), s, np.zeros((n, 5)), vids, 1, 10.0, 0.0, 1.5, 10, 2.25, 1.0)
+        fitted_places(live, np.zeros((n, 5)), vids, 1, 1.5, 10, 2.25)
         group_summary(live, s, px, np.full(n, 3, np.int32), 3.0, 1.0, 4.0, 1.0, 1.08, 10.0)
         group_medians(live, np.array([0, n], np.int64), s, np.zeros(n, np.int32))
         alone_groups(np.ones(1, np.int64), np.zeros(1), np.zeros(1), np.ones(1), np.zeros((1, 8)), 0.0, 0.0, 1.5)
