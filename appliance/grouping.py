@@ -116,6 +116,13 @@ FOOT_UNCERTAINTY = 0.25
 PART_MIN_MPS = 10.0
 GHOST = -1  # host id meaning "a vehicle finalised in the last GHOST_S seconds" (its leftovers)
 GHOST_S = 2.0
+# ... and so is a group of its lane, new or reported less than RECHECK_S ago, that moves like an elevated part of
+# one that left the view at ADOPT_MIN_MPS or faster (over LEVEL_K times its speed, up to k_max) and lies on it with
+# that height undone, as far as the longest vehicle reaches from its near end: a truck's or bus's top, projected
+# tens of metres behind that end, is still in view after the end left the image (its group held the front alone,
+# the top was too far from it to link). Only a vehicle that left the view (one lost short of that may be found
+# again, as a new group where its top would lie), and only in its lane: a faster car overtaking in the lane
+# beyond lies in projection where such a top would (on trucks-and-buses seed 14 four were lost so).
 # A new group that would join a vehicle as an elevated part (moving faster in projection) is watched first: a
 # faster follower closing in behind looks just the same until one of the two changes speed (congestion).
 WATCH_S = 1.0  # watched this long, unreported (followers' speed ratios change 10-25 % in a second of braking)
@@ -803,6 +810,12 @@ def _elevated_reach(lo: float, hi: float) -> float:
     return max(hi, lo + 1.0 + ELEVATED_LENGTH_M + 1.0)
 
 
+def _elevated_x(x_lo: float, x_hi: float) -> tuple[float, float]:
+    """Across the road, where an elevated part of a vehicle with footprint [x_lo, x_hi] may lie (its height
+    undone): that footprint, widened to ELEVATED_WIDTH_M."""
+    return min(x_lo, x_hi - ELEVATED_WIDTH_M), max(x_hi, x_lo + ELEVATED_WIDTH_M)
+
+
 def _extent(o: VehicleState, length: float | None = None) -> tuple[float, float]:
     """Along-road span a vehicle surely covers: its features' span (or its own length without joined
     fragments), at least MIN_LENGTH_M, from its near end (the end nearer the camera, lower Y: the front of an
@@ -867,7 +880,7 @@ class VehicleTrack:
     def elevated_x(self) -> tuple[float, float]:
         """Across the road, where an elevated part of it may lie (its height undone): its footprint, widened to
         ELEVATED_WIDTH_M."""
-        return min(self.x_lo, self.x_hi - ELEVATED_WIDTH_M), max(self.x_hi, self.x_lo + ELEVATED_WIDTH_M)
+        return _elevated_x(self.x_lo, self.x_hi)
 
     def carries(self, gx: float, gy: float, margin: float = FRAGMENT_X_MARGIN_M) -> bool:
         """Whether an elevated part whose height is undone to road point (gx, gy) lies on this vehicle: across,
@@ -935,7 +948,8 @@ class Grouper:
         self._by_shadow = False  # ... and whether it matched as the host's shadow
         self.lights_only = False  # a night scene: vehicles seen by their lights alone (set by the pipeline)
         self.merged_now: set[int] = set()  # groups joined to another vehicle in the last step (for the pipeline's hold)
-        self.recent: list[tuple[VehicleState, float, float]] = []  # finished vehicles, for their leftovers
+        # finished vehicles (VehicleState.exited set), their footprints across and lanes, for their leftovers
+        self.recent: list[tuple[VehicleState, float, float, int]] = []
         self.lost: list[Lost] = []  # reported vehicles lost
         self.foot = zones.camera  # (X, Y, height) of the camera, or None
         self.edge_rows = EDGE_ROWS_K * (params.search_radius_px + params.template_px // 2)
@@ -1268,6 +1282,7 @@ class Grouper:
             if host is not None and self._was_cut_off(members, host):
                 host = None
             if host == GHOST:  # the rest of a vehicle already finalised
+                self._end_as_part(tr, st, GHOST, out)
                 self._retire_quietly(tr.id, members, retire)
                 continue
             if host is not None and tr.reported:
@@ -1598,16 +1613,24 @@ class Grouper:
         if tr.reported:
             vy = tr.steady_vy(st.vy)
         self.recent = [r for r in self.recent if st.t - r[0].t <= GHOST_S]
-        for o, x_lo, x_hi in [] if tr.reported else self.recent:
+        for o, x_lo, x_hi, lane in self.recent if not tr.reported or st.t - tr.report_t <= RECHECK_S else []:
             if o.vy * vy <= 0 or not 0.85 <= vy / o.vy <= 2.5:
                 continue
             dy = o.vy * (st.t - o.t)
             lo, hi = _extent(o)
             lo, hi = lo + dy, hi + dy
             # an elevated leftover (moving faster in projection) may lie across the lane; a level one may not
-            m = FRAGMENT_X_MARGIN_NO_CAMERA_M if vy / o.vy > LEVEL_K else FRAGMENT_X_MARGIN_M
-            if lo <= y <= hi and x_lo - m <= st.x <= x_hi + m:
+            k = vy / o.vy
+            m = FRAGMENT_X_MARGIN_NO_CAMERA_M if k > LEVEL_K else FRAGMENT_X_MARGIN_M
+            if not tr.reported and lo <= y <= hi and x_lo - m <= st.x <= x_hi + m:
                 return GHOST
+            if (o.exited and lane == tr.lane_index and self.foot is not None and LEVEL_K < k <= self.k_max
+                    and abs(o.vy) >= ADOPT_MIN_MPS):
+                gx, gy = self._on_road(st.x, y, k)
+                x_lo, x_hi = _elevated_x(x_lo, x_hi)
+                m = FRAGMENT_X_MARGIN_M
+                if lo <= gy <= _elevated_reach(lo, lo) and x_lo - m <= gx <= x_hi + m:
+                    return GHOST
         self._k = 1.0
         self._by_shadow = False
         side = self._side_host(tr, st, y, vy, members, sign, shadow, joined)
@@ -1877,7 +1900,7 @@ class Grouper:
     def _finish(self, tr: VehicleTrack, exited: bool) -> VehicleState:
         st = tr.last
         self.finished_total += 1
-        self.recent.append((st, tr.x_lo, tr.x_hi))
+        self.recent.append((replace(st, exited=exited), tr.x_lo, tr.x_hi, tr.lane_index))
         return self._grounded(replace(st, finished=True, exited=exited, trajectory=None), tr.ground)
 
 
