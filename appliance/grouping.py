@@ -117,12 +117,15 @@ PART_MIN_MPS = 10.0
 GHOST = -1  # host id meaning "a vehicle finalised in the last GHOST_S seconds" (its leftovers)
 GHOST_S = 2.0
 # ... and so is a group of its lane, new or reported less than RECHECK_S ago, that moves like an elevated part of
-# one that left the view at ADOPT_MIN_MPS or faster (over LEVEL_K times its speed, up to k_max) and lies on it with
-# that height undone, as far as the longest vehicle reaches from its near end: a truck's or bus's top, projected
-# tens of metres behind that end, is still in view after the end left the image (its group held the front alone,
-# the top was too far from it to link). Only a vehicle that left the view (one lost short of that may be found
-# again, as a new group where its top would lie), and only in its lane: a faster car overtaking in the lane
-# beyond lies in projection where such a top would (on trucks-and-buses seed 14 four were lost so).
+# one that left the view in the last GHOST_S at ADOPT_MIN_MPS or faster (over LEVEL_K times its speed, or
+# RECHECK_K_MIN for a reported group as for any re-check, up to k_max) and, the camera known, lies on it with that
+# height undone, as far as the longest vehicle reaches from its near end: a truck's or bus's top, projected tens of
+# metres behind that end, is still in view after the end left the image (its group held the front alone, the top
+# too far from it to link). Its last state names that vehicle, whose Edie time and distance it was. Only a vehicle
+# that left the view: one finished when its features were lost may be found again as a new group, where its top
+# would lie. Only in its lane: a faster car overtaking in the lane beyond lies in projection just where such a top
+# would (on trucks-and-buses seed 14 four were lost when the lane beyond was allowed). In its lane a follower
+# closing in fast just behind the vehicle as it leaves still looks like its top (no image test is left to ask).
 # A new group that would join a vehicle as an elevated part (moving faster in projection) is watched first: a
 # faster follower closing in behind looks just the same until one of the two changes speed (congestion).
 WATCH_S = 1.0  # watched this long, unreported (followers' speed ratios change 10-25 % in a second of braking)
@@ -816,6 +819,14 @@ def _elevated_x(x_lo: float, x_hi: float) -> tuple[float, float]:
     return min(x_lo, x_hi - ELEVATED_WIDTH_M), max(x_hi, x_lo + ELEVATED_WIDTH_M)
 
 
+def _elevated_on(gx: float, gy: float, lo: float, hi: float, x_lo: float, x_hi: float, margin: float) -> bool:
+    """Whether an elevated part whose height is undone to road point (gx, gy) lies on a vehicle with footprint
+    [lo, hi] along the road and [x_lo, x_hi] across: across, over its body's width (_elevated_x) with a margin;
+    along, from its footprint's start as far as the longest vehicle reaches (_elevated_reach)."""
+    x_lo, x_hi = _elevated_x(x_lo, x_hi)
+    return lo <= gy <= _elevated_reach(lo, hi) and x_lo - margin <= gx <= x_hi + margin
+
+
 def _extent(o: VehicleState, length: float | None = None) -> tuple[float, float]:
     """Along-road span a vehicle surely covers: its features' span (or its own length without joined
     fragments), at least MIN_LENGTH_M, from its near end (the end nearer the camera, lower Y: the front of an
@@ -883,12 +894,10 @@ class VehicleTrack:
         return _elevated_x(self.x_lo, self.x_hi)
 
     def carries(self, gx: float, gy: float, margin: float = FRAGMENT_X_MARGIN_M) -> bool:
-        """Whether an elevated part whose height is undone to road point (gx, gy) lies on this vehicle: across,
-        over its body's width (elevated_x) with a margin; along, from its footprint's start as far as the
-        longest vehicle reaches (_elevated_reach)."""
+        """Whether an elevated part whose height is undone to road point (gx, gy) lies on this vehicle (see
+        _elevated_on)."""
         lo, hi = _extent(self.last, self.own_length)
-        x_lo, x_hi = self.elevated_x()
-        return lo <= gy <= _elevated_reach(lo, hi) and x_lo - margin <= gx <= x_hi + margin
+        return _elevated_on(gx, gy, lo, hi, self.x_lo, self.x_hi, margin)
 
     def steady_vy(self, fallback: float) -> float:
         """The along-road speed of the near end over the last SPEED_WINDOW_S (steadier than one frame's), or
@@ -946,9 +955,10 @@ class Grouper:
         self._place = 0.0
         self._k = 1.0  # the speed ratio of the last group _host_of matched to its host (1 for a side part)
         self._by_shadow = False  # ... and whether it matched as the host's shadow
+        self._ghost_of: int | None = None  # the vehicle that left the view whose top it found (see GHOST_S)
         self.lights_only = False  # a night scene: vehicles seen by their lights alone (set by the pipeline)
         self.merged_now: set[int] = set()  # groups joined to another vehicle in the last step (for the pipeline's hold)
-        # finished vehicles (VehicleState.exited set), their footprints across and lanes, for their leftovers
+        # finished vehicles' last states (exited as they finished), footprints across and lanes, for their leftovers
         self.recent: list[tuple[VehicleState, float, float, int]] = []
         self.lost: list[Lost] = []  # reported vehicles lost
         self.foot = zones.camera  # (X, Y, height) of the camera, or None
@@ -1182,6 +1192,7 @@ class Grouper:
         for vid in list(self.tracks):
             if vid not in groups:
                 self._lose(self.tracks.pop(vid), t, out)
+        self.recent = [r for r in self.recent if t - r[0].t <= GHOST_S]
         for vid, members in groups.items():
             lanes = lane[members]
             tr = self.tracks.get(vid)
@@ -1282,7 +1293,7 @@ class Grouper:
             if host is not None and self._was_cut_off(members, host):
                 host = None
             if host == GHOST:  # the rest of a vehicle already finalised
-                self._end_as_part(tr, st, GHOST, out)
+                self._end_as_part(tr, st, self._ghost_of, out)
                 self._retire_quietly(tr.id, members, retire)
                 continue
             if host is not None and tr.reported:
@@ -1601,36 +1612,32 @@ class Grouper:
     def _host_of(self, tr: VehicleTrack, st: VehicleState, sign: int, members: np.ndarray,  # noqa: C901
                  shadow: Callable[[np.ndarray, int], bool] | None,
                  joined: Callable[[np.ndarray, int], bool] | None) -> int | None:
-        """A reported vehicle that this new group is a part of: after undoing the height magnification
-        (its projected speed over the vehicle's, k >= 1) the group's near end falls inside the vehicle's
-        footprint, or (an elevated part with the image between them one body) a footprint as long and wide as
-        any vehicle's: see ELEVATED_LENGTH_M. Tall vehicles' tops seen in the next lane, or behind them, are
-        such fragments. Sets self._place (where on the host the group lies) for the caller's steadiness
-        votes."""
+        """A reported vehicle that this group (new, or reported less than RECHECK_S ago) is a part of: after
+        undoing the height magnification (its projected speed over the vehicle's, k >= 1) the group's near end
+        falls inside the vehicle's footprint, or (an elevated part with the image between them one body) a
+        footprint as long and wide as any vehicle's: see ELEVATED_LENGTH_M. Tall vehicles' tops seen in the next
+        lane, or behind them, are such fragments. GHOST for the rest of a vehicle finalised in the last GHOST_S
+        (self._ghost_of says which). Sets self._place (where on the host the group lies) for the caller's
+        steadiness votes."""
         y = tr.trajectory[-1][2]
         # a reported group's speed over a while (steadier); a new one has only its features' speeds
         vy = st.vy
         if tr.reported:
             vy = tr.steady_vy(st.vy)
-        self.recent = [r for r in self.recent if st.t - r[0].t <= GHOST_S]
-        for o, x_lo, x_hi, lane in self.recent if not tr.reported or st.t - tr.report_t <= RECHECK_S else []:
+        for o, x_lo, x_hi, _ in [] if tr.reported else self.recent:
             if o.vy * vy <= 0 or not 0.85 <= vy / o.vy <= 2.5:
                 continue
             dy = o.vy * (st.t - o.t)
             lo, hi = _extent(o)
             lo, hi = lo + dy, hi + dy
             # an elevated leftover (moving faster in projection) may lie across the lane; a level one may not
-            k = vy / o.vy
-            m = FRAGMENT_X_MARGIN_NO_CAMERA_M if k > LEVEL_K else FRAGMENT_X_MARGIN_M
-            if not tr.reported and lo <= y <= hi and x_lo - m <= st.x <= x_hi + m:
+            m = FRAGMENT_X_MARGIN_NO_CAMERA_M if vy / o.vy > LEVEL_K else FRAGMENT_X_MARGIN_M
+            if lo <= y <= hi and x_lo - m <= st.x <= x_hi + m:
+                self._ghost_of = o.id
                 return GHOST
-            if (o.exited and lane == tr.lane_index and self.foot is not None and LEVEL_K < k <= self.k_max
-                    and abs(o.vy) >= ADOPT_MIN_MPS):
-                gx, gy = self._on_road(st.x, y, k)
-                x_lo, x_hi = _elevated_x(x_lo, x_hi)
-                m = FRAGMENT_X_MARGIN_M
-                if lo <= gy <= _elevated_reach(lo, lo) and x_lo - m <= gx <= x_hi + m:
-                    return GHOST
+        self._ghost_of = self._top_left_behind(tr, st, y, vy)
+        if self._ghost_of is not None:
+            return GHOST
         self._k = 1.0
         self._by_shadow = False
         side = self._side_host(tr, st, y, vy, members, sign, shadow, joined)
@@ -1778,6 +1785,23 @@ class Grouper:
                     and shadow is not None and shadow(members, vid)):
                 self._by_shadow = True
                 return vid
+        return None
+
+    def _top_left_behind(self, tr: VehicleTrack, st: VehicleState, y: float, vy: float) -> int | None:
+        """The vehicle of its lane that left the view whose top group tr is (see GHOST_S), its near end at y moving
+        at vy; None if none. A reported group must move at RECHECK_K_MIN times its speed at least, as it must to
+        join a vehicle still in view."""
+        if self.foot is None:
+            return None
+        k_min = RECHECK_K_MIN if tr.reported else LEVEL_K
+        for o, x_lo, x_hi, lane in self.recent:
+            if not (o.exited and lane == tr.lane_index and abs(o.vy) >= ADOPT_MIN_MPS
+                    and k_min < vy / o.vy <= self.k_max):
+                continue
+            near = _extent(o)[0] + o.vy * (st.t - o.t)  # (its far end is projected: a top's reach is from the near end)
+            gx, gy = self._on_road(st.x, y, vy / o.vy)
+            if _elevated_on(gx, gy, near, near, x_lo, x_hi, FRAGMENT_X_MARGIN_M):
+                return o.id
         return None
 
     def _raised_over(self, slots: np.ndarray, host: int, s: np.ndarray) -> bool:

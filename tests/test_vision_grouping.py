@@ -216,12 +216,15 @@ def test_a_long_truck_s_top_still_in_view_when_its_front_left_is_no_vehicle_but_
     count line, too far from the front's group to link with it, and the image test never says the two are one body.
     It is reported as a vehicle of its own and, faster in projection, would reach the count line after the front
     left the view. Moving like a part of the vehicle that just left its lane, and lying on it with that height
-    undone, it is that vehicle's leftover: counted once. A car in the lane beyond, overtaking at the speed the top
-    shows, lies in projection just where the top would (its place undone falls on the truck too): it counts."""
+    undone, it is that vehicle's leftover: counted once, its last state naming the truck. A car in the lane
+    beyond, overtaking at the speed the top shows, lies in projection just where the top would (its place undone
+    falls on the truck too): it counts."""
     truck = (_box(-1.0, 1.0, 45.0, 49.0, 12, 1), -18.0, 2, 0, 0.0)
     top = (_box(-0.8, 0.8, 61.0, 62.0, 5, 2), -18.0, 2, 21, 4.0)
     seen = _run([truck, top], frames=160)
     assert _counted(seen) == 1, _firsts(seen)
+    truck_id, top_id = sorted(seen)
+    assert seen[top_id][-1].joined == truck_id  # its Edie time and distance were the truck's
     car = (_box(-3.0, -1.8, 95.0, 96.5, 8, 3), -18.0 * 1.39, 1, 21, 0.0)  # 1.39: the top's magnification
     seen = _run([truck, car], frames=160)
     assert _counted(seen) == 2, _firsts(seen)
