@@ -1624,18 +1624,7 @@ class Grouper:
         vy = st.vy
         if tr.reported:
             vy = tr.steady_vy(st.vy)
-        for o, x_lo, x_hi, _ in [] if tr.reported else self.recent:
-            if o.vy * vy <= 0 or not 0.85 <= vy / o.vy <= 2.5:
-                continue
-            dy = o.vy * (st.t - o.t)
-            lo, hi = _extent(o)
-            lo, hi = lo + dy, hi + dy
-            # an elevated leftover (moving faster in projection) may lie across the lane; a level one may not
-            m = FRAGMENT_X_MARGIN_NO_CAMERA_M if vy / o.vy > LEVEL_K else FRAGMENT_X_MARGIN_M
-            if lo <= y <= hi and x_lo - m <= st.x <= x_hi + m:
-                self._ghost_of = o.id
-                return GHOST
-        self._ghost_of = self._top_left_behind(tr, st, y, vy)
+        self._ghost_of = self._leftover_of(tr, st, y, vy)
         if self._ghost_of is not None:
             return GHOST
         self._k = 1.0
@@ -1787,21 +1776,28 @@ class Grouper:
                 return vid
         return None
 
-    def _top_left_behind(self, tr: VehicleTrack, st: VehicleState, y: float, vy: float) -> int | None:
-        """The vehicle of its lane that left the view whose top group tr is (see GHOST_S), its near end at y moving
-        at vy; None if none. A reported group must move at RECHECK_K_MIN times its speed at least, as it must to
-        join a vehicle still in view."""
-        if self.foot is None:
-            return None
+    def _leftover_of(self, tr: VehicleTrack, st: VehicleState, y: float, vy: float) -> int | None:
+        """The vehicle finalised in the last GHOST_S whose leftover group tr is, its near end at y moving at vy; None
+        if none. A new group lying in its extent (moved on at its speed) at 0.85-2.5 times its speed; or, the
+        camera known, the top of one of its lane that left the view (see GHOST_S), a reported group at
+        RECHECK_K_MIN times its speed at least, as it must to join a vehicle still in view."""
         k_min = RECHECK_K_MIN if tr.reported else LEVEL_K
         for o, x_lo, x_hi, lane in self.recent:
-            if not (o.exited and lane == tr.lane_index and abs(o.vy) >= ADOPT_MIN_MPS
-                    and k_min < vy / o.vy <= self.k_max):
+            if o.vy * vy <= 0:
                 continue
-            near = _extent(o)[0] + o.vy * (st.t - o.t)  # (its far end is projected: a top's reach is from the near end)
-            gx, gy = self._on_road(st.x, y, vy / o.vy)
-            if _elevated_on(gx, gy, near, near, x_lo, x_hi, FRAGMENT_X_MARGIN_M):
+            k = vy / o.vy
+            dy = o.vy * (st.t - o.t)
+            lo, hi = _extent(o)
+            lo, hi = lo + dy, hi + dy
+            # an elevated leftover (moving faster in projection) may lie across the lane; a level one may not
+            m = FRAGMENT_X_MARGIN_NO_CAMERA_M if k > LEVEL_K else FRAGMENT_X_MARGIN_M
+            if not tr.reported and 0.85 <= k <= 2.5 and lo <= y <= hi and x_lo - m <= st.x <= x_hi + m:
                 return o.id
+            if (self.foot is not None and o.exited and lane == tr.lane_index and abs(o.vy) >= ADOPT_MIN_MPS
+                    and k_min < k <= self.k_max):
+                gx, gy = self._on_road(st.x, y, k)  # (its far end is projected: a top's reach is from its near end)
+                if _elevated_on(gx, gy, lo, lo, x_lo, x_hi, FRAGMENT_X_MARGIN_M):
+                    return o.id
         return None
 
     def _raised_over(self, slots: np.ndarray, host: int, s: np.ndarray) -> bool:
