@@ -20,7 +20,7 @@ import numpy as np
 from numba import njit
 
 from appliance.config import TrackingParams
-from appliance.types import VehicleState
+from appliance.types import NO_VEHICLE, VehicleState
 from appliance.zones import SiteZones
 
 UNSEEN, LINKED, APART = 0, 1, 2
@@ -1260,6 +1260,7 @@ class Grouper:
                 continue
             tr.last = st
             if is_shadow is not None and self._lone_shadow(tr, t, px[members], is_shadow):
+                self._end_as_part(tr, st, NO_VEHICLE, out)
                 self._retire_quietly(vid, members, retire)
                 continue
             if not tr.merged:
@@ -1331,8 +1332,10 @@ class Grouper:
                 st = replace(st, part_of=tr.votes[0])
             out.append(st)
         for vid in self._passed_through(t):
+            st = next((o for o in out if o.id == vid), None)
+            out = [o for o in out if o.id != vid]
+            self._end_as_part(self.tracks[vid], st, NO_VEHICLE, out)
             self._retire_quietly(vid, groups[vid], retire)
-            out = [st for st in out if st.id != vid]
         for part, host in [(a, b) for a, b in self._rigid_parts(t) if not self._was_cut_off(groups[a], b)]:
             st = next((o for o in out if o.id == part), None)
             out = [o for o in out if o.id != part]

@@ -13,7 +13,7 @@ from appliance.grouping import ELEVATED_LENGTH_M, FOOT_UNCERTAINTY
 from appliance.lanes import LaneHistory, LaneMap
 from appliance.loops import VirtualLoop, length_class
 from appliance.periods import PERIOD_TOLERANCE_S, PeriodClock
-from appliance.types import ChannelState, LaneAggregate, LoopEvent, LoopSight, VehicleRecord, VehicleState
+from appliance.types import NO_VEHICLE, ChannelState, LaneAggregate, LoopEvent, LoopSight, VehicleRecord, VehicleState
 from appliance.zones import length_camera, top_gain
 
 LOST_AFTER_S = 2.0  # a vehicle not seen for this long (and never finished) is forgotten
@@ -523,13 +523,18 @@ class TrafficMeasures:
 
     def _join(self, v: VehicleState, out: MeasureUpdate) -> None:
         """Group v has joined vehicle v.joined as a part of it: a crossing held for it is dropped, and its Edie
-        distance and time are taken back over the time that vehicle covers (one family: see _duplicate). A
-        count it made before its re-check began stands, with its record."""
+        distance and time are taken back over the time that vehicle covers (one family: see _duplicate), or all
+        of them if it was no vehicle and never counted (NO_VEHICLE). A count it made before its re-check began
+        stands, with its record."""
         tr = self.tracks.pop(v.id, None)
         if tr is None:
             return
         tr.held_count = None
-        self._duplicate(v.id, tr, v.joined)
+        if v.joined == NO_VEHICLE:
+            if not tr.crossed:
+                self._take_back(v.id, tr, -np.inf, np.inf)
+        else:
+            self._duplicate(v.id, tr, v.joined)
         self._ended(v.id, tr, self.now_wall)
         self._off_loops(v.id, v.t, out)
         if tr.crossed:

@@ -57,8 +57,15 @@ class VehicleState:
     # the measures hold a count-line crossing of it until the check ends
     part_of: int | None = None
     # its last state (finished), when it has joined vehicle ``joined`` as a part of it: a crossing held for it is
-    # dropped and its Edie distance and time are that vehicle's, counted once
+    # dropped and its Edie distance and time are that vehicle's, counted once (NO_VEHICLE: it was none at all)
     joined: int | None = None
+
+
+# VehicleState.joined of a reported group that turned out to be no vehicle at all: only a shadow on the road, or
+# features stuck on it that a vehicle drove through. A crossing held for it is dropped and, if it never counted, its
+# Edie distance and time are taken back (one that counted stands in for a vehicle: a shadow cast ahead of a car
+# hidden until then counts in its place).
+NO_VEHICLE = -2
 
 
 @dataclass(slots=True)

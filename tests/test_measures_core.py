@@ -12,7 +12,7 @@ from appliance.config import parse_site
 from appliance.edie import clip_segments
 from appliance.loops import STANDING, WAIT_S
 from appliance.measures import LOST_AFTER_S, TrafficMeasures
-from appliance.types import LoopSight, VehicleState
+from appliance.types import NO_VEHICLE, LoopSight, VehicleState
 
 EPOCH = 1767225600.0  # 2026-01-01T00:00:00Z, a period boundary
 
@@ -538,6 +538,39 @@ def test_a_crossing_of_a_group_rechecked_as_a_part_waits_for_the_check(joins):
         assert time == pytest.approx(3.0, abs=0.03)
     else:
         assert time > 3.0 + 1.0  # the part's own time counts too
+
+
+@pytest.mark.parametrize("ends_y, counted", [(60.0, False), (45.0, True)])
+def test_a_group_that_turned_out_to_be_no_vehicle_takes_back_its_edie_unless_it_counted(ends_y, counted):
+    """A group beside a car (a shadow on the road, 3 m across in lane 1 while the car drives in lane 2) is
+    reported and then found to be no vehicle (its last state joined NO_VEHICLE). Short of its count line (50 m)
+    its distance and time are taken back: lane 1 reads nothing. Past it, it counted (and stands for a vehicle,
+    as a shadow cast ahead of one hidden until then does): its Edie stays."""
+    lanes = [
+        {"id": 1, "direction": "approaching", "polygon_m": [[-5, 0], [0, 0], [0, 100], [-5, 100]],
+         "region_y_m": [20.0, 80.0], "count_y_m": 50.0},
+        {"id": 2, "direction": "approaching", "polygon_m": [[0, 0], [5, 0], [5, 100], [0, 100]],
+         "region_y_m": [20.0, 80.0], "count_y_m": 50.0},
+    ]
+    tm = TrafficMeasures(make_site(loops=[], lanes=lanes))
+    t_end = (100.0 - ends_y) / 20.0
+
+    def states(t: float, y: float) -> list[VehicleState]:
+        vs = [VehicleState(1, t, 2.5, y, y + 4.5, 0, -20, 4.5, 8)]
+        if t <= t_end + 1e-9:
+            end = t >= t_end - 1e-9
+            vs.append(VehicleState(2, t, -0.5, y, y + 2.0, 0, -20, 2.0, 4, finished=end,
+                                   joined=NO_VEHICLE if end else None))
+        return vs
+
+    crossings = [c for _, upd in drive(tm, states) for c in upd.crossings]
+    assert sorted(c.lane for c in crossings) == ([1, 2] if counted else [2])
+    (d1, d2), (t1, t2) = tm.edie.peek(EPOCH)
+    assert (d2, t2) == pytest.approx((60.0, 3.0), abs=0.05)  # the car
+    if counted:
+        assert (d1, t1) == pytest.approx((100.0 - ends_y - 20.0, t_end - 1.0), abs=0.7)  # (Edie places a 2 m group)
+    else:
+        assert (d1, t1) == pytest.approx((0.0, 0.0), abs=1e-9)
 
 
 def test_a_crossing_held_past_the_end_of_its_period_counts_in_the_next():

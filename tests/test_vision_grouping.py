@@ -8,7 +8,8 @@ import pytest
 
 from appliance.config import MeasuresConfig, parse_site
 from appliance.grouping import GHOST, WATCHING, Grouper, VehicleTrack
-from appliance.types import VehicleState
+from appliance.pipeline import HOLD_S
+from appliance.types import NO_VEHICLE, VehicleState
 from appliance.zones import LaneZones, SiteZones
 from tests.test_vision_pipeline import site_dict
 
@@ -209,6 +210,21 @@ def test_a_roof_still_watched_when_its_truck_leaves_the_view_is_no_vehicle():
     roof = (_box(-0.8, 0.8, 22.0, 29.0, 8, 2), -15.0, 2, 0, 3.5)
     seen = _run([truck, roof], frames=90)
     assert len(seen) == 1 and seen[min(seen)][-1].finished, {k: len(v) for k, v in seen.items()}
+
+
+def test_a_group_found_only_a_shadow_after_its_report_went_out_ends_as_no_vehicle():
+    """Corners on the road (height 0) moving at 20 m/s that the image's shadow test first calls a shadow only in
+    frame 14 (the share it needs builds up over the next frames): the group was reported at once and its report
+    released (pipeline.HOLD_S) before it is retired as a lone shadow. Its last state says it was no vehicle
+    (joined NO_VEHICLE), so that the measures take back its Edie distance and time; retired quietly, as before,
+    the measures kept them."""
+    marks = np.array([[-1.5, 0.0], [-0.5, 0.0], [0.5, 0.0], [1.5, 0.0], [-1.0, 2.0], [1.0, 2.0]]) + [1.75, 60.0]
+    seen = _run([(marks, -20.0, 2, 0, 0.0)], frames=40, shadow_seen=lambda f: f >= 14)
+    first = seen[min(seen)]
+    report = next(st.t for st in first if st.trajectory is not None)
+    last = first[-1]
+    assert last.finished and last.joined == NO_VEHICLE
+    assert last.t - report > HOLD_S
 
 
 def test_a_long_truck_s_top_still_in_view_when_its_front_left_is_no_vehicle_but_a_car_beyond_is():
