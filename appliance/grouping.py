@@ -837,6 +837,14 @@ def _extent(o: VehicleState, length: float | None = None) -> tuple[float, float]
     return near - 1.0, near + max(span, MIN_LENGTH_M) + 1.0
 
 
+def _take_state(out: list[VehicleState], vid: int) -> VehicleState | None:
+    """Remove vehicle vid's state from this frame's states (in place) and return it; None if it has none."""
+    for i, st in enumerate(out):
+        if st.id == vid:
+            return out.pop(i)
+    return None
+
+
 class Lost(NamedTuple):
     """A reported vehicle whose features were all lost inside its detection zone (it may be found again)."""
 
@@ -1260,8 +1268,7 @@ class Grouper:
                 continue
             tr.last = st
             if is_shadow is not None and self._lone_shadow(tr, t, px[members], is_shadow):
-                self._end_as_part(tr, st, NO_VEHICLE, out)
-                self._retire_quietly(vid, members, retire)
+                self._end_as_no_vehicle(tr, st, members, retire, out)
                 continue
             if not tr.merged:
                 tr.own_length = length
@@ -1332,13 +1339,9 @@ class Grouper:
                 st = replace(st, part_of=tr.votes[0])
             out.append(st)
         for vid in self._passed_through(t):
-            st = next((o for o in out if o.id == vid), None)
-            out = [o for o in out if o.id != vid]
-            self._end_as_part(self.tracks[vid], st, NO_VEHICLE, out)
-            self._retire_quietly(vid, groups[vid], retire)
+            self._end_as_no_vehicle(self.tracks[vid], _take_state(out, vid), groups[vid], retire, out)
         for part, host in [(a, b) for a, b in self._rigid_parts(t) if not self._was_cut_off(groups[a], b)]:
-            st = next((o for o in out if o.id == part), None)
-            out = [o for o in out if o.id != part]
+            st = _take_state(out, part)
             self._absorb(groups[part], host, groups[host])
             self._end_as_part(self.tracks.pop(part), st, host, out)
         med = None
@@ -1849,8 +1852,9 @@ class Grouper:
         self.tracks[host].merged = True
 
     def _end_as_part(self, tr: VehicleTrack, st: VehicleState | None, host: int, out: list[VehicleState]) -> None:
-        """Group tr ends as a part of vehicle host: never a vehicle of its own (the pipeline drops its held report,
-        see merged_now); a reported one's last state tells the measures whom it joined (VehicleState.joined)."""
+        """Group tr ends as a part of vehicle host (or of none: NO_VEHICLE): never a vehicle of its own (the
+        pipeline drops its held report, see merged_now); a reported one's last state tells the measures whom it
+        joined (VehicleState.joined)."""
         self.merged_now.add(tr.id)
         if tr.reported and st is not None:
             out.append(replace(st, finished=True, joined=host))
@@ -1863,9 +1867,16 @@ class Grouper:
         return (tr.reported and t - tr.report_t <= RECHECK_S and tr.votes[1] >= ORPHAN_VOTES
                 and (t - tr.vote_t <= ORPHAN_GAP_S or tr.votes[0] not in self.tracks))
 
+    def _end_as_no_vehicle(self, tr: VehicleTrack, st: VehicleState | None, members: np.ndarray,
+                           retire: list[np.ndarray], out: list[VehicleState]) -> None:
+        """End a group that turned out to be no vehicle at all (NO_VEHICLE): a reported one's last state says so,
+        and its features are retired."""
+        self._end_as_part(tr, st, NO_VEHICLE, out)
+        self._retire_quietly(tr.id, members, retire)
+
     def _retire_quietly(self, vid: int, members: np.ndarray, retire: list[np.ndarray]) -> None:
-        """End a group that is no vehicle of its own: never finalised, its held report never released (the
-        pipeline drops what is in merged_now), its features retired."""
+        """End a group that is no vehicle of its own: its track dropped, its held report never released (the
+        pipeline drops what is in merged_now), its features retired. A last state, if any, is the caller's."""
         self.tracks.pop(vid)
         self.merged_now.add(vid)
         retire.append(members)

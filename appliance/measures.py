@@ -523,9 +523,10 @@ class TrafficMeasures:
 
     def _join(self, v: VehicleState, out: MeasureUpdate) -> None:
         """Group v has joined vehicle v.joined as a part of it: a crossing held for it is dropped, and its Edie
-        distance and time are taken back over the time that vehicle covers (one family: see _duplicate), or all
-        of them if it was no vehicle and never counted (NO_VEHICLE). A count it made before its re-check began
-        stands, with its record."""
+        distance and time are taken back over the time that vehicle covers (one family: see _duplicate), or, if
+        it was no vehicle and never counted (NO_VEHICLE), all that it still holds (a family's member or head keeps
+        none, its segments counting only where its family's did not; and none are taken back from periods already
+        closed). A count it made before its re-check began stands, with its record."""
         tr = self.tracks.pop(v.id, None)
         if tr is None:
             return

@@ -63,8 +63,8 @@ class VehicleState:
 
 # VehicleState.joined of a reported group that turned out to be no vehicle at all: only a shadow on the road, or
 # features stuck on it that a vehicle drove through. A crossing held for it is dropped and, if it never counted, its
-# Edie distance and time are taken back (one that counted stands in for a vehicle: a shadow cast ahead of a car
-# hidden until then counts in its place).
+# Edie distance and time in the periods still open are taken back (one that counted stands in for a vehicle: a
+# shadow cast ahead of a car hidden until then counts in its place).
 NO_VEHICLE = -2
 
 

@@ -495,7 +495,8 @@ def test_a_part_seen_before_its_receding_vehicle_joins_the_vehicle_reported_afte
 def test_a_still_group_that_a_vehicle_drives_through_is_dropped():
     """Features a vehicle left on an occluder's edge move with it a little, then stand still there. Such
     a group is reported (it moved), but when the next vehicle of the lane drives through the place it
-    stands it cannot be a vehicle (vehicles queue; they do not pass through one another): it is dropped."""
+    stands it cannot be a vehicle (vehicles queue; they do not pass through one another): it is dropped, its
+    last state saying it was no vehicle (the measures take back its Edie time)."""
 
     def stuck(t: float) -> tuple[float, float]:  # creeps 5.25 m at 3.5 m/s, then stands still (not a dead stop)
         return (-3.5 * min(t, 1.5), -3.5 if t < 1.5 else 0.0)
@@ -508,6 +509,7 @@ def test_a_still_group_that_a_vehicle_drives_through_is_dropped():
     assert len(still) == 1, {vid: (ss[0].t, ss[0].y_front) for vid, ss in seen.items()}
     last_t = seen[still[0]][-1].t
     assert 4.5 < last_t < 5.4, last_t  # kept standing until the car went through it, then dropped
+    assert seen[still[0]][-1].finished and seen[still[0]][-1].joined == NO_VEHICLE
     assert _counted(seen) == 1  # the car, once
 
 
