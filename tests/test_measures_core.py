@@ -40,6 +40,17 @@ def make_site(period_s: int = 300, loops: list[dict] | None = None, lanes: list[
     return parse_site(data, "test-site")
 
 
+def approaching_pair(second_id: int, second_count_y: float) -> list[dict]:
+    """Lane 1 (x -5..0, count line 50 m) and an approaching lane beside it (x 0..5) with this id and count line;
+    both regions 80 -> 20 m."""
+    return [
+        {"id": 1, "direction": "approaching", "polygon_m": [[-5, 0], [0, 0], [0, 100], [-5, 100]],
+         "region_y_m": [20.0, 80.0], "count_y_m": 50.0},
+        {"id": second_id, "direction": "approaching", "polygon_m": [[0, 0], [5, 0], [5, 100], [0, 100]],
+         "region_y_m": [20.0, 80.0], "count_y_m": second_count_y},
+    ]
+
+
 def platoon_states(t: float, speed: float, headway: float, length: float, lane: int, phase: float = 0.0,
                    id_base: int = 0):
     """Constant-speed vehicles every ``headway`` s entering at y=100 (lane 1) or y=0 (lane 2)."""
@@ -546,13 +557,7 @@ def test_a_group_that_turned_out_to_be_no_vehicle_takes_back_its_edie_unless_it_
     reported and then found to be no vehicle (its last state joined NO_VEHICLE). Short of its count line (50 m)
     its distance and time are taken back: lane 1 reads nothing. Past it, it counted (and stands for a vehicle,
     as a shadow cast ahead of one hidden until then does): its Edie stays."""
-    lanes = [
-        {"id": 1, "direction": "approaching", "polygon_m": [[-5, 0], [0, 0], [0, 100], [-5, 100]],
-         "region_y_m": [20.0, 80.0], "count_y_m": 50.0},
-        {"id": 2, "direction": "approaching", "polygon_m": [[0, 0], [5, 0], [5, 100], [0, 100]],
-         "region_y_m": [20.0, 80.0], "count_y_m": 50.0},
-    ]
-    tm = TrafficMeasures(make_site(loops=[], lanes=lanes))
+    tm = TrafficMeasures(make_site(loops=[], lanes=approaching_pair(2, 50.0)))
     t_end = (100.0 - ends_y) / 20.0
 
     def states(t: float, y: float) -> list[VehicleState]:
@@ -779,13 +784,7 @@ def test_a_small_group_counted_at_two_staggered_lines_is_extended_back_once():
     """A small group first seen inside its region (80 -> 20 m, entered at 2 s at 20 m/s) changes from lane 1
     (count line 50 m) to lane 3 (count line 45 m) and is counted at both lines: it is extended back to its
     region's entry once, t(A) 3 s over both lanes (twice: 3.72 s)."""
-    lanes = [
-        {"id": 1, "direction": "approaching", "polygon_m": [[-5, 0], [0, 0], [0, 100], [-5, 100]],
-         "region_y_m": [20.0, 80.0], "count_y_m": 50.0},
-        {"id": 3, "direction": "approaching", "polygon_m": [[0, 0], [5, 0], [5, 100], [0, 100]],
-         "region_y_m": [20.0, 80.0], "count_y_m": 45.0},
-    ]
-    tm = TrafficMeasures(make_site(loops=[], lanes=lanes))
+    tm = TrafficMeasures(make_site(loops=[], lanes=approaching_pair(3, 45.0)))
     tm.step(0.0, EPOCH, [])
     for i in range(68, 126):  # 2.72 s to 5 s
         t = i / 25
