@@ -1268,7 +1268,7 @@ class Grouper:
                 continue
             tr.last = st
             if is_shadow is not None and self._lone_shadow(tr, t, px[members], is_shadow):
-                self._end_as_no_vehicle(tr, st, members, retire, out)
+                self._retire_as_part(tr, st, NO_VEHICLE, members, retire, out)
                 continue
             if not tr.merged:
                 tr.own_length = length
@@ -1301,8 +1301,7 @@ class Grouper:
             if host is not None and self._was_cut_off(members, host):
                 host = None
             if host == GHOST:  # the rest of a vehicle already finalised
-                self._end_as_part(tr, st, self._ghost_of, out)
-                self._retire_quietly(tr.id, members, retire)
+                self._retire_as_part(tr, st, self._ghost_of, members, retire, out)
                 continue
             if host is not None and tr.reported:
                 off = self._place
@@ -1339,7 +1338,7 @@ class Grouper:
                 st = replace(st, part_of=tr.votes[0])
             out.append(st)
         for vid in self._passed_through(t):
-            self._end_as_no_vehicle(self.tracks[vid], _take_state(out, vid), groups[vid], retire, out)
+            self._retire_as_part(self.tracks[vid], _take_state(out, vid), NO_VEHICLE, groups[vid], retire, out)
         for part, host in [(a, b) for a, b in self._rigid_parts(t) if not self._was_cut_off(groups[a], b)]:
             st = _take_state(out, part)
             self._absorb(groups[part], host, groups[host])
@@ -1867,11 +1866,11 @@ class Grouper:
         return (tr.reported and t - tr.report_t <= RECHECK_S and tr.votes[1] >= ORPHAN_VOTES
                 and (t - tr.vote_t <= ORPHAN_GAP_S or tr.votes[0] not in self.tracks))
 
-    def _end_as_no_vehicle(self, tr: VehicleTrack, st: VehicleState | None, members: np.ndarray,
-                           retire: list[np.ndarray], out: list[VehicleState]) -> None:
-        """End a group that turned out to be no vehicle at all (NO_VEHICLE): a reported one's last state says so,
-        and its features are retired."""
-        self._end_as_part(tr, st, NO_VEHICLE, out)
+    def _retire_as_part(self, tr: VehicleTrack, st: VehicleState | None, host: int, members: np.ndarray,
+                        retire: list[np.ndarray], out: list[VehicleState]) -> None:
+        """End group tr as a part of vehicle host (or of none: NO_VEHICLE), as _end_as_part does, and retire its
+        features: host has gone, or there is none, to take them."""
+        self._end_as_part(tr, st, host, out)
         self._retire_quietly(tr.id, members, retire)
 
     def _retire_quietly(self, vid: int, members: np.ndarray, retire: list[np.ndarray]) -> None:
