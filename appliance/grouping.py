@@ -268,11 +268,14 @@ LOW_END_M = 0.5
 # shadow or flank falls in the next lane, the features born there carry that lane's label and form a group
 # of their own. A new group in a neighbouring lane of the same direction is such a side part when it moves
 # with the vehicle, its near end is level with the vehicle's, and together they are no wider than one
-# vehicle with its shadow:
+# vehicle with its shadow. On the camera's side of the vehicle, where its raised parts do not lean, such a part is
+# only a strip across the road (its flank's lower edge, a shadow's edge); a car entering beside it shows its whole
+# width there:
 SIDE_SPEED_TOL = 0.1  # relative speed difference
 SIDE_SPEED_TOL_WATCHED = 0.2  # ... of speeds averaged over SPEED_WINDOW_S, for a part watched RECHECK_VOTES frames
 SIDE_DY_M = 2.0  # near ends this close along the road
 SIDE_GAP_M = 1.0  # lateral gap between the two footprints
+SIDE_NEAR_MAX_WIDTH_M = 1.0  # its own width on the camera's side of the vehicle (see above)
 SIDE_MAX_WIDTH_M = 3.5  # joint footprint width (two cars side by side span >= 5 m: lane 3.5 + car 1.7)
 # ... or up to this with the image between the two one body (a tall vehicle's flank and top are projected wider:
 # a 4 m high box from a 10 m pole spans 1.7 times its width; two cars side by side have road between them)
@@ -1727,7 +1730,8 @@ class Grouper:
                    joined: Callable[[np.ndarray, int], bool] | None = None) -> int | None:
         """A vehicle in a neighbouring lane of the same direction whose side part this group is: same
         speed, near ends level, and either a receding vehicle's flank (joint footprint no wider than one
-        vehicle, or than a tall one's projection where the image between them is its body) or only a shadow
+        vehicle, or than a tall one's projection where the image between them is its body; on the camera's side
+        of the vehicle only a strip, SIDE_NEAR_MAX_WIDTH_M) or only a shadow
         on the road (the image says so; a low sun casts one across the next lane into the lane beyond, see
         SHADOW_LANES). A reported group is compared by its speed over a while, and with a vehicle reported after
         it only as its shadow or a much smaller flank (a receding vehicle's shadow cast ahead of it enters the
@@ -1762,7 +1766,8 @@ class Grouper:
             lo, hi = _extent(o, other.own_length)
             if lanes_apart > 1:
                 pass  # only its shadow reaches across a lane (below)
-            elif flank and sign > 0 and gap <= SIDE_GAP_M and width <= SIDE_MAX_WIDTH_M:
+            elif flank and sign > 0 and gap <= SIDE_GAP_M and width <= SIDE_MAX_WIDTH_M and (
+                    self.foot is None or self._leans_away(st.x, o.x) or tr.x_hi - tr.x_lo <= SIDE_NEAR_MAX_WIDTH_M):
                 if dy <= SIDE_DY_M and dv <= SIDE_SPEED_TOL:
                     return vid
                 # a reported part is watched longer (the votes): anywhere along the vehicle, speeds less sure

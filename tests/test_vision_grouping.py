@@ -468,6 +468,20 @@ def test_a_receding_vehicles_side_part_in_the_next_lane_joins_it_once_watched():
     assert _counted(_run([car, beside], lanes=lanes), receding=True) == 2
 
 
+@pytest.mark.parametrize("width, counted", [(0.3, 1), (1.4, 2)])
+def test_a_group_beside_a_receding_vehicle_on_the_cameras_side_joins_it_only_as_a_strip(width, counted):
+    """Receding traffic seen from beside the road: a vehicle's raised parts lean away from the camera in
+    projection, so what is seen across the lane line on the camera's side of it, level with its rear and as
+    fast, is at most a strip across the road (its flank's lower edge, a shadow's edge). A strip there joins
+    it; a group as wide as a car's rear is a car entering the view beside it (here the vehicle's own near end
+    shows only a narrow strip at the lane line, so the two near ends together are no wider than one vehicle)."""
+    lanes = (("receding", 0.0, 3.5), ("receding", 3.5, 7.0))  # the camera's foot at x 0: lane 1 on its side
+    host = (np.vstack([_box(3.6, 4.0, 10.0, 12.8, 6, 7), _box(3.6, 5.4, 13.2, 14.5, 8, 8)]), 10.0, 2, 0, 0.0)
+    beside = (_box(3.3 - width, 3.3, 10.3, 14.5, 12, 9), 10.0, 1, 12, 0.0)
+    seen = _run([host, beside], lanes=lanes)
+    assert _counted(seen, receding=True) == counted, _firsts(seen)
+
+
 @pytest.mark.parametrize("part", ["shadow", "flank"])
 def test_a_part_seen_before_its_receding_vehicle_joins_the_vehicle_reported_after_it(part):
     """A receding vehicle enters the view at the image bottom, and its shadow cast ahead of it into the next
