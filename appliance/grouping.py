@@ -269,13 +269,13 @@ LOW_END_M = 0.5
 # of their own. A new group in a neighbouring lane of the same direction is such a side part when it moves
 # with the vehicle, its near end is level with the vehicle's, and together they are no wider than one
 # vehicle with its shadow. On the camera's side of the vehicle, where its raised parts do not lean, such a part is
-# only a strip across the road (its flank's lower edge, a shadow's edge); a car entering beside it shows its whole
-# width there:
+# narrow across the road (its flank's lower edge, a shadow's edge along it); a car entering beside it shows its
+# whole width there:
 SIDE_SPEED_TOL = 0.1  # relative speed difference
 SIDE_SPEED_TOL_WATCHED = 0.2  # ... of speeds averaged over SPEED_WINDOW_S, for a part watched RECHECK_VOTES frames
 SIDE_DY_M = 2.0  # near ends this close along the road
 SIDE_GAP_M = 1.0  # lateral gap between the two footprints
-SIDE_NEAR_MAX_WIDTH_M = 1.0  # its own width on the camera's side of the vehicle (see above)
+SIDE_NEAR_MAX_WIDTH_M = 1.0  # the part's near end no wider across the road, on the camera's side of the vehicle
 SIDE_MAX_WIDTH_M = 3.5  # joint footprint width (two cars side by side span >= 5 m: lane 3.5 + car 1.7)
 # ... or up to this with the image between the two one body (a tall vehicle's flank and top are projected wider:
 # a 4 m high box from a 10 m pole spans 1.7 times its width; two cars side by side have road between them)
@@ -1731,11 +1731,11 @@ class Grouper:
         """A vehicle in a neighbouring lane of the same direction whose side part this group is: same
         speed, near ends level, and either a receding vehicle's flank (joint footprint no wider than one
         vehicle, or than a tall one's projection where the image between them is its body; on the camera's side
-        of the vehicle only a strip, SIDE_NEAR_MAX_WIDTH_M) or only a shadow
-        on the road (the image says so; a low sun casts one across the next lane into the lane beyond, see
-        SHADOW_LANES). A reported group is compared by its speed over a while, and with a vehicle reported after
-        it only as its shadow or a much smaller flank (a receding vehicle's shadow cast ahead of it enters the
-        view first); sets self._place for the votes."""
+        of the vehicle its near end at most SIDE_NEAR_MAX_WIDTH_M wide) or only a shadow on the road (the image
+        says so; a low sun casts one across the next lane into the lane beyond, see SHADOW_LANES). A reported
+        group is compared by its speed over a while, and with a vehicle reported after it only as its shadow or a
+        much smaller flank (a receding vehicle's shadow cast ahead of it enters the view first); sets self._place
+        for the votes."""
         for vid, other in self.tracks.items():
             o = other.last
             if vid == tr.id or o is None or o.t != st.t or other.lane_index == tr.lane_index:
@@ -1767,7 +1767,8 @@ class Grouper:
             if lanes_apart > 1:
                 pass  # only its shadow reaches across a lane (below)
             elif flank and sign > 0 and gap <= SIDE_GAP_M and width <= SIDE_MAX_WIDTH_M and (
-                    self.foot is None or self._leans_away(st.x, o.x) or tr.x_hi - tr.x_lo <= SIDE_NEAR_MAX_WIDTH_M):
+                    self.foot is None or self._leans_away(st.x, o.x) or other.x_lo <= self.foot[0] <= other.x_hi
+                    or tr.x_hi - tr.x_lo <= SIDE_NEAR_MAX_WIDTH_M):  # (over the camera's foot it leans both ways)
                 if dy <= SIDE_DY_M and dv <= SIDE_SPEED_TOL:
                     return vid
                 # a reported part is watched longer (the votes): anywhere along the vehicle, speeds less sure

@@ -468,16 +468,23 @@ def test_a_receding_vehicles_side_part_in_the_next_lane_joins_it_once_watched():
     assert _counted(_run([car, beside], lanes=lanes), receding=True) == 2
 
 
-@pytest.mark.parametrize("width, counted", [(0.3, 1), (1.4, 2)])
-def test_a_group_beside_a_receding_vehicle_on_the_cameras_side_joins_it_only_as_a_strip(width, counted):
+@pytest.mark.parametrize("part, counted", [("narrow, camera's side", 1), ("wide, camera's side", 2),
+                                            ("wide, far side", 1)])
+def test_a_group_beside_a_receding_vehicle_on_the_cameras_side_joins_it_only_if_narrow(part, counted):
     """Receding traffic seen from beside the road: a vehicle's raised parts lean away from the camera in
     projection, so what is seen across the lane line on the camera's side of it, level with its rear and as
-    fast, is at most a strip across the road (its flank's lower edge, a shadow's edge). A strip there joins
-    it; a group as wide as a car's rear is a car entering the view beside it (here the vehicle's own near end
-    shows only a narrow strip at the lane line, so the two near ends together are no wider than one vehicle)."""
+    fast, is narrow across the road (its flank's lower edge, a shadow's edge along it). A narrow part there
+    joins it; one wider than SIDE_NEAR_MAX_WIDTH_M is a car entering the view beside it (the vehicle's own near
+    end shows only a narrow strip at the lane line here, so the two near ends together are no wider than one
+    vehicle). On the far side, where its flank and top lean, a wide part joins it."""
     lanes = (("receding", 0.0, 3.5), ("receding", 3.5, 7.0))  # the camera's foot at x 0: lane 1 on its side
-    host = (np.vstack([_box(3.6, 4.0, 10.0, 12.8, 6, 7), _box(3.6, 5.4, 13.2, 14.5, 8, 8)]), 10.0, 2, 0, 0.0)
-    beside = (_box(3.3 - width, 3.3, 10.3, 14.5, 12, 9), 10.0, 1, 12, 0.0)
+    if part == "wide, far side":
+        host = (np.vstack([_box(3.0, 3.4, 10.0, 12.8, 6, 7), _box(1.6, 3.4, 13.2, 14.5, 8, 8)]), 10.0, 1, 0, 0.0)
+        beside = (_box(3.7, 5.1, 10.3, 14.5, 12, 9), 10.0, 2, 12, 0.0)
+    else:
+        host = (np.vstack([_box(3.6, 4.0, 10.0, 12.8, 6, 7), _box(3.6, 5.4, 13.2, 14.5, 8, 8)]), 10.0, 2, 0, 0.0)
+        width = 0.3 if part.startswith("narrow") else 1.7
+        beside = (_box(3.3 - width, 3.3, 10.3, 14.5, 12, 9), 10.0, 1, 12, 0.0)
     seen = _run([host, beside], lanes=lanes)
     assert _counted(seen, receding=True) == counted, _firsts(seen)
 
