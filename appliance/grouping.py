@@ -1767,8 +1767,7 @@ class Grouper:
             if lanes_apart > 1:
                 pass  # only its shadow reaches across a lane (below)
             elif flank and sign > 0 and gap <= SIDE_GAP_M and width <= SIDE_MAX_WIDTH_M and (
-                    self.foot is None or self._leans_away(st.x, o.x) or other.x_lo <= self.foot[0] <= other.x_hi
-                    or tr.x_hi - tr.x_lo <= SIDE_NEAR_MAX_WIDTH_M):  # (over the camera's foot it leans both ways)
+                    not self._on_cameras_side(st.x, other) or tr.x_hi - tr.x_lo <= SIDE_NEAR_MAX_WIDTH_M):
                 if dy <= SIDE_DY_M and dv <= SIDE_SPEED_TOL:
                     return vid
                 # a reported part is watched longer (the votes): anywhere along the vehicle, speeds less sure
@@ -1834,6 +1833,13 @@ class Grouper:
         """Whether a point at x across the road lies on the side of a vehicle at host_x away from the camera,
         where its raised parts are projected."""
         return self.foot is not None and (x - host_x) * (host_x - self.foot[0]) > 0.0
+
+    def _on_cameras_side(self, x: float, host: VehicleTrack) -> bool:
+        """Whether a point at x across the road lies on the camera's side of vehicle host, where none of its raised
+        parts are projected: the camera known, its foot not within the host's near end across the road (raised
+        parts lean both ways from there), and x not leaning away from the host."""
+        return (self.foot is not None and not host.x_lo <= self.foot[0] <= host.x_hi
+                and not self._leans_away(x, host.last.x))
 
     def _lose(self, tr: VehicleTrack, t: float, out: list[VehicleState]) -> None:
         """A vehicle's features are gone: it is finished if it had left its detection zone, else remembered
