@@ -320,6 +320,24 @@ LATE_BESIDE_X_M = 6.0
 LATE_BESIDE_K = (0.7, 1.5)
 LATE_HOST_X_M = 2.5
 LATE_HOST_K_SPREAD = 0.15
+# A tall vehicle's features at different heights move at different speeds in projection (its top's height
+# magnification k over its bumper's), so their pairs' distances grow and segmentation parts them: with few features
+# (rain, a plain body) it falls apart into groups each too small to be reported, and is never counted. Yet a point
+# at height, its ground point D from the camera's foot, is seen k D away moving at k V: its distance over its speed
+# is the time its ground point takes to reach the foot (since it passed it, receding), the same for every point of
+# one vehicle's front (its bumper, windscreen and roof's front edge: ground places within V STACK_S of each other).
+# Two such groups of a lane, on one side of the foot, settled and moving its way, the further one faster by a ratio
+# of up to the largest magnification, within the connection distance of each other across the road, whose times to
+# the foot agree within STACK_S, are one vehicle if so for STACK_HELD_S running with the image between them one body
+# in every frame (the image test of joined parts): the further one joins the nearer one for good. At constant speeds
+# a follower closing in on a vehicle of its lane so as to reach the foot with it moves just so, but the road is seen
+# between the two. STACK_S is a quarter of the shortest time gap drivers keep (about 1 s; the synthetic scenes'
+# queues 1.1-1.4 s), and no tighter: the time to the foot carries the speed's error, 5 % of 5 s far out. A reported
+# vehicle across the road within LATE_BESIDE_X_M with about their time to the foot (from STACK_S less to
+# ELEVATED_LENGTH_M over its speed more) may have them as its parts (a flank, a mirror and its shadow in the next
+# lane): the rules for parts take them, not this one.
+STACK_S = 0.25
+STACK_HELD_S = 0.2
 # An approaching vehicle's near end whose feature lay within EDGE_ROWS_K times the tracker's reach (its search
 # radius and half a template) of the image's bottom and is gone has left the view there (the tracker drops a
 # feature whose search window leaves the image): the near end goes on at the vehicle's speed from then on, as
@@ -945,6 +963,7 @@ class Grouper:
         self.rng = np.zeros((n, n, 4), np.float32)
         self.y0 = np.zeros((n, n), np.float32)
         self.late = np.zeros(n, np.bool_)  # per slot: may link late (see LATE_BESIDE_M), as of the last step
+        self.stacked: dict[tuple[int, int], float] = {}  # small groups' pairs seen as one vehicle: since when
         self.labels = np.full(n, -1, np.int64)
         self.fvid = np.full(n, -1, np.int64)
         # per feature, its straight-line fit against its group's near end (see _ground_length): frames, and
@@ -1352,6 +1371,10 @@ class Grouper:
             med = group_medians(members, np.cumsum([0] + [len(m) for _, m in small]), s, age)
         on_road = [a for a, (_, m) in enumerate(small) if not self.lifted[m].all()]  # tops take no late links
         self.late = self._late_slots(t, [small[a] for a in on_road], med[on_road] if small else None, age)
+        if is_joined is not None:
+            for a, b in self._stacked(t, [small[a] for a in on_road], med[on_road] if small else None, age,
+                                      lambda a, b: is_joined(px[a], px[b])):
+                self._link(a, b)
         adopted = [a for a in self._adopted(t, small, med, joined) if not self._was_cut_off(a[1], a[2])]
         for vid, members, host in adopted:
             self._absorb(members, host, groups[host], shade=True)  # high up: no part of its place on the road
@@ -1386,6 +1409,47 @@ class Grouper:
             if ok:
                 late[m[age[m] >= SETTLED_AGE]] = True
         return late
+
+    def _stacked(self, t: float, small: list[tuple[int, np.ndarray]], med: np.ndarray | None, age: np.ndarray,
+                 joined: Callable[[np.ndarray, np.ndarray], bool]) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Pairs (further, nearer) of small groups' settled features that are parts of one tall vehicle (see
+        STACK_S), seen so for STACK_HELD_S; joined(a, b): the image test of slots a and b being one body."""
+        seen: dict[tuple[int, int], float] = {}
+        out = []
+        if self.foot is not None and len(small) >= 2:
+            lanes = np.array([self.tracks[vid].lane_index for vid, _ in small])
+            sign = np.array([self.zones.by_index(li).sign if li > 0 else 0 for li in lanes])
+            q = med[:, 1] - self.foot[1]
+            d, v = np.abs(q), np.abs(med[:, 2])
+            ok = (v > MOVING_MPS) & (med[:, 3] >= SETTLED_AGE) & (med[:, 2] * sign > 0)
+            v = np.where(ok, v, 1.0)
+            ttf = d / v
+            cars = np.array([(o.x, min(o.y_front, o.y_rear) - self.foot[1], o.vy)
+                             for o in (tr.last for tr in self.tracks.values() if tr.reported)
+                             if o is not None and o.t == t and abs(o.vy) > MOVING_MPS]).reshape(-1, 3)
+            lag = ttf[:, None] - np.abs(cars[None, :, 1]) / np.abs(cars[None, :, 2])
+            ok &= ~np.any((np.abs(med[:, 0:1] - cars[None, :, 0]) <= LATE_BESIDE_X_M)
+                          & (q[:, None] * cars[None, :, 1] > 0) & (med[:, 2:3] * cars[None, :, 2] > 0)
+                          & (lag >= -STACK_S) & (lag <= ELEVATED_LENGTH_M / np.abs(cars[None, :, 2]) + STACK_S), axis=1)
+            r = np.maximum(v[:, None], v[None, :]) / np.minimum(v[:, None], v[None, :])
+            faster_further = (d[:, None] >= d[None, :]) == (v[:, None] >= v[None, :])
+            pair = (ok[:, None] & ok[None, :] & (lanes[:, None] == lanes[None, :]) & (q[:, None] * q[None, :] > 0)
+                    & ((r <= LEVEL_K) | faster_further) & (r <= self.k_max)
+                    & (np.abs(ttf[:, None] - ttf[None, :]) <= STACK_S)
+                    & (np.abs(med[:, 0:1] - med[None, :, 0]) <= self.p.connection_lateral_m))
+            for a, b in zip(*np.nonzero(np.triu(pair, 1))):
+                if d[a] < d[b]:
+                    a, b = b, a  # the further one joins the nearer one
+                ma, mb = small[a][1], small[b][1]
+                ma, mb = ma[age[ma] >= SETTLED_AGE], mb[age[mb] >= SETTLED_AGE]
+                if not joined(ma, mb):
+                    continue
+                key = (min(small[a][0], small[b][0]), max(small[a][0], small[b][0]))
+                seen[key] = self.stacked.get(key, t)
+                if t - seen[key] >= STACK_HELD_S:
+                    out.append((ma, mb))
+        self.stacked = seen
+        return out
 
     def _watched(self, tr: VehicleTrack, st: VehicleState, host: int | None, groups: dict[int, np.ndarray]
                  ) -> int | None:

@@ -1086,6 +1086,27 @@ def test_small_groups_beside_a_vehicle_or_over_it_do_not_link_into_a_vehicle_of_
     assert len(seen) == 1, {k: len(v) for k, v in seen.items()}
 
 
+def test_a_tall_plain_vehicle_seen_in_small_groups_at_its_heights_is_one_vehicle():
+    """STACK_S: a tall van with few features (rain, a plain body) shows small groups of two at its bumper, its
+    windscreen's foot and its roof's front edge, each fewer than a vehicle needs and further apart in projection than
+    the connection distance, moving at their heights' magnifications (the pair graph parts what links them). Their
+    distances from the camera's foot over their speeds agree (its front's time to the foot), and the image between
+    them is one body: one vehicle, counted. Without that image test (the road seen between them) they stay apart,
+    and nothing is counted. A car closing in on a car of its lane so as to reach the foot with it moves just so:
+    only the image test (the road between them) keeps the two apart. Two cars of a lane at one speed 6 m apart are
+    0.4 s apart in their times to the foot: never one vehicle, whatever the image test says."""
+    van = [(_box(0.8, 2.6, 50.0, 50.4, 2, 71 + i), -15.0, 2, 0, h) for i, h in enumerate((0.3, 1.5, 3.0))]
+    assert _counted(_run(van, joined=True)) == 1
+    assert _counted(_run(van, joined=False)) == 0
+    cy = SiteZones(parse_site(site_dict())).camera[1]
+    leader = (_box(0.8, 2.6, 50.0, 50.4, 2, 74), -15.0, 2, 0, 0.3)
+    closing = (_box(0.8, 2.6, 62.0, 62.4, 2, 75), -15.0 * (62.2 - cy) / (50.2 - cy), 2, 0, 0.3)
+    assert _counted(_run([leader, closing], joined=True)) == 1
+    assert _counted(_run([leader, closing], joined=False)) == 0
+    apart = (_box(0.8, 2.6, 56.0, 56.4, 2, 76), -15.0, 2, 0, 0.3)
+    assert _counted(_run([leader, apart], joined=True)) == 0
+
+
 def test_the_spot_speed_is_the_bumpers_not_the_lights_above_it():
     """SPOT_M (1 m): the spot speed (count lines, loops, vehicle records) is the median of the settled features
     within this of the near end along the road: the bumper's (0.3 m up, 2.2 % fast in projection under this
