@@ -26,7 +26,7 @@ from tools.loop_classes import format_loop_classes, merge, scene_loop_classes, t
 from tools.simulate.presets import PRESETS
 
 # The presets the issue's accuracy targets name; the sweep measures two-directions too (both directions in one
-# scene, its camera over the road's edge), and sums the targets over both sets
+# scene, its camera on a pole at the roadside), and sums the targets over all it ran and over these alone
 ISSUE_PRESETS = ("free-flow", "dense", "shockwave", "long-shadows", "night", "rain", "wind-shake", "trucks-and-buses")
 TARGET_PRESETS = (*ISSUE_PRESETS, "two-directions")
 COUNT_TOL_PCT = 3.0
