@@ -225,8 +225,8 @@ def sweep(presets: str, seeds: str, seconds: float, work: Path, size: str, tag: 
     mine = issue_rows(rows)
     summary_issue = summarise(mine) if mine and len(mine) < len(rows) else None
     if summary_issue is not None:
-        others = sorted({r["scene"].rsplit("-s", 1)[0] for r in rows} - set(ISSUE_PRESETS))
-        click.echo(f"The issue's presets alone (without {', '.join(others)}): {format_targets(summary_issue)}")
+        others = ", ".join(p for p in names if p not in ISSUE_PRESETS)
+        click.echo(f"The issue's presets alone (without {others}): {format_targets(summary_issue)}")
     click.echo("Scenes encoded with: " + "; ".join(f"{e} ({n})" for e, n in encoders.items()))
     if classes:
         click.echo(f"Length classes of the counted vehicles (whole scenes), truth/result: {format_class_counts(classes)}")
