@@ -351,6 +351,8 @@ EDGE_ROWS_K = 3.0
 # STILL_S): counted from when its front came into view, its time in the Edie region ran 0.2 s long, and the
 # receding lanes' speeds read 2-4 % low. Only while its front is short of its count line: where the line lies
 # that close to the bottom (a vehicle entering over it counts where first seen), its first report must not wait.
+# Begun afresh past its detection zone, it has still entered the view there (a long vehicle whose length is not yet
+# measured, its front taken to be short of the line when it is over it, was never counted: Grouper._entered).
 ENTER_ROWS_K = 2.0
 # A feature younger than SETTLED_AGE moving its group's way at under this share of the median speed of the
 # group's settled features (when that is MOVING_MPS or more) is not its near end: a corner on the road just
@@ -916,6 +918,7 @@ class VehicleTrack:
     near_slot: int = -1  # the near end's feature in the last frame ...
     near_row: float = 0.0  # ... its image row then
     leaving: bool = False  # its near end has left the image at its bottom (see EDGE_ROWS_K)
+    entered_at_bottom: bool = False  # first seen in its detection zone, its trajectory since begun afresh (ENTER_ROWS_K)
 
     def elevated_x(self) -> tuple[float, float]:
         """Across the road, where an elevated part of it may lie (its height undone): its footprint, widened to
@@ -1327,9 +1330,11 @@ class Grouper:
             tr.trajectory.append((t, st.x, rep_y))
             if not abs(rep_y - tr.still_y) <= STILL_M:
                 tr.still_y, tr.still_t = rep_y, t
-            if not tr.reported and (t - tr.still_t >= STILL_S or (
-                    sign > 0 and tr.near_row >= self.zones.height - ENTER_ROWS_K * self.edge_rows
-                    and rep_y + tr.ground[0] < lz.count_y)):
+            entering = (not tr.reported and sign > 0 and tr.near_row >= self.zones.height - ENTER_ROWS_K * self.edge_rows
+                        and rep_y + tr.ground[0] < lz.count_y)
+            if entering:
+                tr.entered_at_bottom = tr.entered_at_bottom or lz.in_detection(tr.trajectory[0][2])
+            if entering or (not tr.reported and t - tr.still_t >= STILL_S):
                 tr.trajectory = tr.trajectory[-1:]
                 tr.start_y = rep_y
             moved = abs(rep_y - tr.start_y) >= MIN_TRAVEL_M and abs(vy) >= MIN_SPEED_MPS
@@ -2020,7 +2025,7 @@ class Grouper:
             lo = max(short, key=lambda lo: lo.t)
             self.lost.remove(lo)
             st.trajectory = [(lo.t, lo.x, lo.front)] + (st.trajectory or [])
-        return lz.detection_y[0] <= y0 <= lz.detection_y[1] and not found
+        return (lz.in_detection(y0) or tr.entered_at_bottom) and not found
 
     def _link(self, a: np.ndarray, b: np.ndarray) -> None:
         """Join features a to the vehicle of features b for good."""

@@ -37,6 +37,10 @@ class LaneZones:
     detection_px: np.ndarray
     exit_px: np.ndarray
 
+    def in_detection(self, y: float) -> bool:
+        """Whether along-road position y lies in the detection zone."""
+        return self.detection_y[0] <= y <= self.detection_y[1]
+
     def in_exit(self, y: float) -> bool:
         """Whether a vehicle's representative point at along-road position y has reached the exit zone."""
         return y <= self.exit_y[1] if self.sign < 0 else y >= self.exit_y[0]

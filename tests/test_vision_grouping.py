@@ -1299,6 +1299,44 @@ def test_a_receding_vehicle_entering_at_the_image_bottom_starts_once_its_rear_is
     assert first.trajectory[0][0] >= in_view_t - DT - 1e-9, (first.trajectory[0], in_view_t)
 
 
+def test_a_receding_vehicle_begun_afresh_past_a_short_detection_zone_has_still_entered_the_view():
+    """As above, where the rows a receding vehicle's trajectory begins afresh in reach past its detection zone (a
+    small frame: the tracker's reach is more of it) and the count line lies close to them: the car, first seen in
+    its detection zone, is reported with its front already over the line and its rear short of it. It has entered
+    the view, and so counts where first reported (measures count a vehicle entering over its line only then); its
+    first point past the zone said it was found again somewhere mid-view, and it was never counted."""
+    d = site_dict(lanes=RECEDING_BESIDE_APPROACHING)
+    d["lanes"][0].update(count_y_m=9.0, detection_y_m=[2.0, 4.0])
+    site = parse_site(d)
+    zones = SiteZones(site)
+    g = Grouper(site.tracking, zones)
+    n = site.tracking.max_features
+    s, px = np.zeros((n, 4)), np.zeros((n, 2))
+    lane, alive, age = np.zeros(n, np.int32), np.zeros(n, np.bool_), np.zeros(n, np.int32)
+    body = np.column_stack([np.linspace(-2.5, -1.0, 12), np.linspace(0.0, 3.0, 12)])
+    last_row = zones.height - 8
+    born = np.full(len(body), -1)
+    first = None
+    for f in range(60):
+        t = f * DT
+        rear = -4.0 + 15.0 * t
+        for i, (x, dy) in enumerate(body):
+            row = zones.H.road_to_img(np.array([[x, rear + dy]]))[0]
+            if row[1] < last_row and born[i] < 0:
+                born[i] = f
+                g.reset_slots(np.array([i]))
+            if born[i] >= 0:
+                s[i], px[i] = (x, rear + dy, 0.0, 15.0), row
+                lane[i], alive[i], age[i] = 1, True, f - born[i]
+        out, retire = g.step(t, s, px, lane, alive, age)
+        alive[retire] = False
+        first = first or next((st for st in out if st.trajectory is not None), None)
+    assert first is not None, "the car is never reported"
+    assert first.trajectory and first.trajectory[0][2] - (first.y_front - first.y_rear) > 4.0, first.trajectory
+    assert first.y_rear < 9.0 < first.y_front, first
+    assert first.entered
+
+
 @pytest.mark.parametrize("case, kept_apart", [
     ("two cars", True),
     ("a third vehicle's feature between them", True),
