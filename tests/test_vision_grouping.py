@@ -1262,19 +1262,17 @@ def test_a_corner_dragged_along_behind_a_receding_car_is_not_its_near_end():
     assert max(rear_lag) < 0.5, rear_lag
 
 
-def test_a_receding_vehicle_entering_at_the_image_bottom_starts_once_its_rear_is_in_view():
-    """A receding car enters the view at the image's bottom, front first: its corners appear as they come
-    into view, its lowest visible point stays at the edge until its rear is in view. Its trajectory starts
-    no earlier than a frame before that (the point held at the edge is not where the car is: counted from
-    when its front came into view, its time in the Edie region would run 0.2 s long)."""
-    lanes = RECEDING_BESIDE_APPROACHING
-    site = parse_site(site_dict(lanes=lanes))
+def _enter_at_bottom(d: dict, length: float) -> tuple[VehicleState | None, float | None, np.ndarray]:
+    """A receding car this long (site d's lane 1, 15 m/s) entering the view at the image's bottom, front first:
+    its corners appear as they come into view. Returns its first report, when its rear came into view, and the
+    frame each corner was found in."""
+    site = parse_site(d)
     zones = SiteZones(site)
     g = Grouper(site.tracking, zones)
     n = site.tracking.max_features
     s, px = np.zeros((n, 4)), np.zeros((n, 2))
     lane, alive, age = np.zeros(n, np.int32), np.zeros(n, np.bool_), np.zeros(n, np.int32)
-    body = np.column_stack([np.linspace(-2.5, -1.0, 12), np.linspace(0.0, 4.4, 12)])  # (x, ahead of the rear)
+    body = np.column_stack([np.linspace(-2.5, -1.0, 12), np.linspace(0.0, length, 12)])  # (x, ahead of the rear)
     last_row = zones.height - 8  # no corner is found or tracked lower (the tracker's search window)
     born = np.full(len(body), -1)
     rear0, speed, in_view_t, first = -4.0, 15.0, None, None
@@ -1294,6 +1292,15 @@ def test_a_receding_vehicle_entering_at_the_image_bottom_starts_once_its_rear_is
         out, retire = g.step(t, s, px, lane, alive, age)
         alive[retire] = False
         first = first or next((st for st in out if st.trajectory), None)
+    return first, in_view_t, born
+
+
+def test_a_receding_vehicle_entering_at_the_image_bottom_starts_once_its_rear_is_in_view():
+    """A receding car enters the view at the image's bottom, front first: its corners appear as they come
+    into view, its lowest visible point stays at the edge until its rear is in view. Its trajectory starts
+    no earlier than a frame before that (the point held at the edge is not where the car is: counted from
+    when its front came into view, its time in the Edie region would run 0.2 s long)."""
+    first, in_view_t, born = _enter_at_bottom(site_dict(lanes=RECEDING_BESIDE_APPROACHING), 4.4)
     assert in_view_t is not None and born.min() < born[0], "the car must enter front first"
     assert first is not None, "the car is never reported"
     assert first.trajectory[0][0] >= in_view_t - DT - 1e-9, (first.trajectory[0], in_view_t)
@@ -1307,32 +1314,9 @@ def test_a_receding_vehicle_begun_afresh_past_a_short_detection_zone_has_still_e
     first point past the zone said it was found again somewhere mid-view, and it was never counted."""
     d = site_dict(lanes=RECEDING_BESIDE_APPROACHING)
     d["lanes"][0].update(count_y_m=9.0, detection_y_m=[2.0, 4.0])
-    site = parse_site(d)
-    zones = SiteZones(site)
-    g = Grouper(site.tracking, zones)
-    n = site.tracking.max_features
-    s, px = np.zeros((n, 4)), np.zeros((n, 2))
-    lane, alive, age = np.zeros(n, np.int32), np.zeros(n, np.bool_), np.zeros(n, np.int32)
-    body = np.column_stack([np.linspace(-2.5, -1.0, 12), np.linspace(0.0, 3.0, 12)])
-    last_row = zones.height - 8
-    born = np.full(len(body), -1)
-    first = None
-    for f in range(60):
-        t = f * DT
-        rear = -4.0 + 15.0 * t
-        for i, (x, dy) in enumerate(body):
-            row = zones.H.road_to_img(np.array([[x, rear + dy]]))[0]
-            if row[1] < last_row and born[i] < 0:
-                born[i] = f
-                g.reset_slots(np.array([i]))
-            if born[i] >= 0:
-                s[i], px[i] = (x, rear + dy, 0.0, 15.0), row
-                lane[i], alive[i], age[i] = 1, True, f - born[i]
-        out, retire = g.step(t, s, px, lane, alive, age)
-        alive[retire] = False
-        first = first or next((st for st in out if st.trajectory is not None), None)
+    first, _, _ = _enter_at_bottom(d, 3.0)
     assert first is not None, "the car is never reported"
-    assert first.trajectory and first.trajectory[0][2] - (first.y_front - first.y_rear) > 4.0, first.trajectory
+    assert first.trajectory[0][2] - (first.y_front - first.y_rear) > 4.0, first.trajectory  # past the zone
     assert first.y_rear < 9.0 < first.y_front, first
     assert first.entered
 
