@@ -242,8 +242,8 @@ FIT_NEIGHBOUR_M = 1.0
 # places that leaves a vehicle's worth of them on each side and no more than LONGEST_M in front, if the part behind
 # keeps up with the near end (the median of its fits' slopes at least 1 - SPLIT_LAG: a follower falling back is
 # parting from it anyway). Its other features go with the fitted one nearest them, its shadow and its tops seen
-# off the lanes stay with it. The part behind loses the vehicle's id and its links across the cut, corners found
-# later do not link the two again (see Grouper._keep_cut_apart), and the part never joins that
+# off the lanes stay with it. The part behind loses the vehicle's id and its links across the cut, new corners do
+# not link the two again while the vehicle is a settled one (see _components), and the part never joins that
 # vehicle as a fragment: it becomes a vehicle of its own.
 LONGEST_M = ELEVATED_LENGTH_M * (1.0 + FOOT_UNCERTAINTY)
 SPLIT_GAP_M = 2.0
@@ -1029,19 +1029,17 @@ class Grouper:
         within RECHECK_S, and matched by a re-check (at least once) to a host still there in its lane (a tall
         vehicle's top, which a new feature between the two may then join to it; a side part or a shadow, whose
         host is in the next lane, no new feature could join to its host), or moves as an elevated part of a
-        bigger one (see PART_MIN_MPS). With the camera known or not, a part cut off a vehicle is kept apart from
-        it whatever links them later (see _keep_cut_apart)."""
-        kept = None
-        if self.foot is not None:
-            parts = self._elevated_parts(reported)
-            ids = [vid for vid in reported if not self._on_trial(self.tracks[vid], t) and vid not in parts]
-            owner = np.where(np.isin(self.fvid, ids), self.fvid, -1)
-            owner = np.where((owner < 0) & (self.cut_off >= 0), CUT_OWNER + self.cut_off, owner)
-            new = live[age[live] == 0]
-            kept = unbridge(new, live, owner, s, self.state) if len(new) else None
-        components(live, self.state, self.labels)
-        if self._keep_cut_apart(live, s):
+        bigger one (see PART_MIN_MPS)."""
+        if self.foot is None:
             components(live, self.state, self.labels)
+            return
+        parts = self._elevated_parts(reported)
+        ids = [vid for vid in reported if not self._on_trial(self.tracks[vid], t) and vid not in parts]
+        owner = np.where(np.isin(self.fvid, ids), self.fvid, -1)
+        owner = np.where((owner < 0) & (self.cut_off >= 0), CUT_OWNER + self.cut_off, owner)
+        new = live[age[live] == 0]
+        kept = unbridge(new, live, owner, s, self.state) if len(new) else None
+        components(live, self.state, self.labels)
         if kept is None or len(np.unique(kept[kept >= 0])) < 2:  # two vehicles are joined through two of them
             return
         owner_live = owner[live]
@@ -1052,34 +1050,6 @@ class Grouper:
         if joint.any():
             isolate(new[joint], kept[joint], live, owner, self.state)
             components(live, self.state, self.labels)
-
-    def _keep_cut_apart(self, live: np.ndarray, s: np.ndarray) -> bool:
-        """Part again a vehicle and a part cut off it (see LONGEST_M) that the pair graph has linked since: through
-        a corner found after the cut, which unbridge keeps from linking them only in the frame it is found, and
-        only with the camera known (without it, as on a frame cropped off-centre, lengths are measured and cut but
-        nothing else keeps the two apart). Each feature of their component that is neither's goes with the
-        nearest of theirs along the road, and no link nor fragment tie is left between the two sides. Whether
-        it parted any."""
-        cut = live[self.cut_off[live] >= 0]
-        done = False
-        for v in np.unique(self.cut_off[cut]).tolist():
-            rear = cut[self.cut_off[cut] == v]
-            front = live[(self.fvid[live] == v) & (self.cut_off[live] != v)]
-            shared = np.intersect1d(self.labels[rear], self.labels[front])
-            if not len(shared):
-                continue
-            comp = live[np.isin(self.labels[live], shared)]
-            side = np.isin(comp, rear)
-            known = side | np.isin(comp, front)
-            if not known.all():
-                d = np.abs(s[comp[~known], 1][:, None] - s[comp[known], 1][None, :])
-                side[~known] = side[known][np.argmin(d, axis=1)]
-            a, b = comp[side], comp[~side]
-            lo, hi = np.minimum.outer(a, b), np.maximum.outer(a, b)
-            tied = self.state[lo, hi] != UNSEEN
-            self.state[lo[tied], hi[tied]] = APART
-            done = True
-        return done
 
     def _elevated_parts(self, ids: np.ndarray) -> set[int]:
         """Reported vehicles (of ids) that move as an elevated part of a bigger reported one of their lane or the

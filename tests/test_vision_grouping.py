@@ -1427,28 +1427,3 @@ def test_a_vehicle_measured_longer_than_any_is_cut_at_the_widest_gap_between_the
     bus = [(_box(-1.2, 1.2, 40.0, 55.0, 6, 33 + i), -15.0, 2, 0, h) for i, h in enumerate((0.0, 0.5, 1.0, 1.5, 2.0))]
     seen = _run(bus, frames=120)
     assert _counted(seen) == 1, _firsts(seen)
-
-
-@pytest.mark.parametrize("born", [30, 40])
-def test_a_follower_cut_off_a_vehicle_stays_apart_when_a_corner_found_later_links_the_two(born):
-    """The car and its follower of the test above, in a frame whose camera is not known (lengths are measured,
-    heights not undone: no new corner is kept from linking two vehicles at its birth): after the cut a corner
-    found on the road between the two links both. The pair graph holds them together through it from the next
-    frame; the cut stands (the part cut off never joins the vehicle again), and each keeps its own features:
-    without that, the follower's group is taken back into the car's, or breaks up, and is not counted (born
-    40), or is counted under another id."""
-    speed = -15.0
-    gaps = np.array([3.5, 4.5, 4.8, 4.2])
-    ys = 44.5 + np.cumsum(gaps)
-    leader = (np.vstack([_box(-1.0, 1.0, 40.0, 44.5, 8, 31), [[0.0, 44.5]]]), speed, 2, 0, 0.0)
-    follower = (np.vstack([[[0.0, ys[-1]]], _box(-1.0, 1.0, ys[-1], ys[-1] + 4.5, 8, 32)]), speed, 2, 0, 0.0)
-    chain = (np.column_stack([np.zeros(3), ys[:-1]]), speed, 2, 0, 0.0)
-    bridge = (np.array([[0.3, ys[1] + 0.5 * gaps[2]]]), speed, 2, born, 0.0)
-    seen = _run([leader, follower, chain, bridge], frames=120, uncentred=True)
-    assert _counted(seen) == 2, _firsts(seen)
-    car, behind = sorted(seen)[:2]
-    first = seen[behind][0]
-    assert abs(first.y_front - (ys[2] + speed * first.t)) < 1.0, first  # the follower (and the corner before it)
-    assert _counted({behind: seen[behind]}) == 1, _firsts(seen)
-    cut = [st for st in seen[car] if 0.5 <= st.t <= 2.0]
-    assert cut and max(st.n_features for st in cut) <= 9 + 2 + 1, _firsts(seen)  # its own, two corners, the bridge
