@@ -351,8 +351,9 @@ EDGE_ROWS_K = 3.0
 # STILL_S): counted from when its front came into view, its time in the Edie region ran 0.2 s long, and the
 # receding lanes' speeds read 2-4 % low. Only while its front is short of its count line: where the line lies
 # that close to the bottom (a vehicle entering over it counts where first seen), its first report must not wait.
-# Begun afresh past its detection zone, it has still entered the view there (a long vehicle whose length is not yet
-# measured, its front taken to be short of the line when it is over it, was never counted: Grouper._entered).
+# A group whose near end lay in its detection zone while it was begun afresh so has entered the view, wherever its
+# trajectory begins (in a small frame the rows in reach run past the zone): taken for one found again mid-view, a
+# vehicle reported with its front already over the line (its length measured only then) was never counted.
 ENTER_ROWS_K = 2.0
 # A feature younger than SETTLED_AGE moving its group's way at under this share of the median speed of the
 # group's settled features (when that is MOVING_MPS or more) is not its near end: a corner on the road just
@@ -918,7 +919,7 @@ class VehicleTrack:
     near_slot: int = -1  # the near end's feature in the last frame ...
     near_row: float = 0.0  # ... its image row then
     leaving: bool = False  # its near end has left the image at its bottom (see EDGE_ROWS_K)
-    entered_at_bottom: bool = False  # first seen in its detection zone, its trajectory since begun afresh (ENTER_ROWS_K)
+    entered_at_bottom: bool = False  # its near end was in its detection zone as it entered (see ENTER_ROWS_K)
 
     def elevated_x(self) -> tuple[float, float]:
         """Across the road, where an elevated part of it may lie (its height undone): its footprint, widened to
@@ -1300,8 +1301,8 @@ class Grouper:
             tr.trajectory.append((t, st.x, rep_y))
             if not abs(rep_y - tr.still_y) <= STILL_M:
                 tr.still_y, tr.still_t = rep_y, t
-            entering = (not tr.reported and sign > 0 and tr.near_row >= self.zones.height - ENTER_ROWS_K * self.edge_rows
-                        and rep_y + tr.ground[0] < lz.count_y)
+            entering = (not tr.reported and sign > 0 and rep_y + tr.ground[0] < lz.count_y
+                        and tr.near_row >= self.zones.height - ENTER_ROWS_K * self.edge_rows)
             if entering:
                 tr.entered_at_bottom = tr.entered_at_bottom or lz.in_detection(tr.trajectory[0][2])
             if entering or (not tr.reported and t - tr.still_t >= STILL_S):
@@ -1973,7 +1974,8 @@ class Grouper:
         return t - t0 >= LONE_SHADOW_S and n >= LONE_SHADOW_TESTS and hits >= LONE_SHADOW_SHARE * n
 
     def _entered(self, tr: VehicleTrack, st: VehicleState, ahead: float) -> bool:
-        """Whether a newly reported vehicle entered the view: first seen in its lane's detection zone, and
+        """Whether a newly reported vehicle entered the view: its trajectory begins in its lane's detection zone
+        (or its near end lay there while it was begun afresh at the image's bottom: see ENTER_ROWS_K), and
         not where a reported vehicle of its lane lost in the last LOST_KEEP_S could be by then at the speed it has
         (found again, it must not count again: see LOST_ACCEL_MPS2; one lost soon after its report only past its
         count line, see LOST_MIN_REPORTED_S). Found again past its count line where it was lost short of it, it

@@ -1307,11 +1307,12 @@ def test_a_receding_vehicle_entering_at_the_image_bottom_starts_once_its_rear_is
 
 
 def test_a_receding_vehicle_begun_afresh_past_a_short_detection_zone_has_still_entered_the_view():
-    """As above, where the rows a receding vehicle's trajectory begins afresh in reach past its detection zone (a
-    small frame: the tracker's reach is more of it) and the count line lies close to them: the car, first seen in
-    its detection zone, is reported with its front already over the line and its rear short of it. It has entered
-    the view, and so counts where first reported (measures count a vehicle entering over its line only then); its
-    first point past the zone said it was found again somewhere mid-view, and it was never counted."""
+    """As above, where the rows in which a receding vehicle's trajectory begins afresh reach past its detection zone
+    (a small frame: the tracker's reach is more of it) and the count line lies close to them: the car, its near end
+    in the zone as it entered, is reported with its front already over the line (at a typical car's length, its own
+    not yet measured) and its rear short of it. It has entered the view, and so counts where first reported
+    (measures count a vehicle entering over its line only then); its first point past the zone said it was found
+    again somewhere mid-view, and it was never counted."""
     d = site_dict(lanes=RECEDING_BESIDE_APPROACHING)
     d["lanes"][0].update(count_y_m=9.0, detection_y_m=[2.0, 4.0])
     first, _, _ = _enter_at_bottom(d, 3.0)
