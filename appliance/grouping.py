@@ -1376,10 +1376,10 @@ class Grouper:
             members = np.concatenate([m for _, m in small])
             med = group_medians(members, np.cumsum([0] + [len(m) for _, m in small]), s, age)
         on_road = [a for a, (_, m) in enumerate(small) if not self.lifted[m].all()]  # tops take no late links
-        self.late = self._late_slots(t, [small[a] for a in on_road], med[on_road] if small else None, age)
+        road, road_med = [small[a] for a in on_road], med[on_road] if small else None
+        self.late = self._late_slots(t, road, road_med, age)
         if is_joined is not None:
-            for a, b in self._stacked(t, [small[a] for a in on_road], med[on_road] if small else None, age,
-                                      lambda a, b: is_joined(px[a], px[b])):
+            for a, b in self._stacked(t, road, road_med, age, lambda a, b: is_joined(px[a], px[b])):
                 self._link(a, b)
         adopted = [a for a in self._adopted(t, small, med, joined) if not self._was_cut_off(a[1], a[2])]
         for vid, members, host in adopted:
@@ -1424,7 +1424,7 @@ class Grouper:
         out = []
         if self.foot is not None and len(small) >= 2:
             lanes = np.array([self.tracks[vid].lane_index for vid, _ in small])
-            sign = np.array([self.zones.by_index(li).sign if li > 0 else 0 for li in lanes])
+            sign = self.zones.sign_by_index[lanes]
             q = med[:, 1] - self.foot[1]
             d, v = np.abs(q), np.abs(med[:, 2])
             ok = (v > MOVING_MPS) & (med[:, 3] >= SETTLED_AGE) & (med[:, 2] * sign > 0)
