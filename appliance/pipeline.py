@@ -22,14 +22,13 @@ from appliance.presence import LoopPresence
 from appliance.stabilise import Stabiliser
 from appliance.tracker import FeatureTracker
 from appliance.types import Frame, LoopSight, VehicleState
-from appliance.zones import SiteZones
+from appliance.zones import LANE_MARGIN_M, SiteZones
 
 REPEAT_GRID = 4  # subsampling step of the repeated-frame check
 # A frame repeats the previous one when no grid pixel changed by more than this: encoder duplicates
 # differ by coding noise only (<= 15 grey levels in H.264 at crf 23), anything moving changes far more.
 # A genuinely still frame is skipped too, which loses nothing.
 REPEAT_MAX_DIFF = 20
-LANE_MARGIN_M = 2.0  # features this far beyond their lane's along-road extent are dropped
 NIGHT_GREY = 40.0  # a frame darker than this on average is a night scene (day scenes: 90-140, night: 10-25)
 LK_WIN = (15, 15)
 LK_LEVELS = 3

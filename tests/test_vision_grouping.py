@@ -10,7 +10,7 @@ from appliance.config import MeasuresConfig, parse_site
 from appliance.grouping import GHOST, WATCHING, Grouper, VehicleTrack
 from appliance.pipeline import HOLD_S
 from appliance.types import NO_VEHICLE, VehicleState
-from appliance.zones import LaneZones, SiteZones
+from appliance.zones import LANE_MARGIN_M, LaneZones, SiteZones
 from tests.test_vision_pipeline import site_dict
 
 DT = 0.04
@@ -1216,7 +1216,8 @@ def test_features_found_off_the_lanes_never_make_a_vehicle_of_their_own():
 
 def test_the_tops_of_the_far_lanes_vehicles_are_searched_off_the_lanes_under_its_label():
     """Beyond the lane furthest from the camera's foot, where a truck's box in it is seen, corners are searched
-    and labelled with that lane; on the lanes nothing changes (their own label)."""
+    and labelled with that lane; on the lanes nothing changes (their own label). Not where the box's top is
+    projected beyond the lane's far end: a feature placed there is dropped (pipeline.LANE_MARGIN_M)."""
     site = parse_site(site_dict())
     z = SiteZones(site)
     assert z.camera is not None and z.lifted_zone is not None
@@ -1224,13 +1225,22 @@ def test_the_tops_of_the_far_lanes_vehicles_are_searched_off_the_lanes_under_its
     fx, fy, ch = z.camera
     far = max(z.lanes, key=lambda lz: abs(float(lz.polygon_m[:, 0].mean()) - fx))
     edge = far.polygon_m[:, 0].min() if far.polygon_m[:, 0].mean() < fx else far.polygon_m[:, 0].max()
-    k = ch / (ch - 3.5)  # a box top 3.5 m high over the lane's outer edge, mid-way along its detection zone
-    gx, gy = edge - 0.3 * np.sign(fx - edge), 0.5 * sum(far.detection_y)
-    top = z.H.road_to_img(np.array([[fx + k * (gx - fx), fy + k * (gy - fy)]]))
-    assert z.lane_at_px(top)[0] == 0
-    assert z.lane_at_px(top, lifted=True)[0] == far.index
+    k = ch / (ch - 3.5)  # a box top 3.5 m high over the lane's outer edge, near its detection zone's start
+    gx = edge - 0.3 * np.sign(fx - edge)
+
+    def top(gy: float) -> np.ndarray:
+        return z.H.road_to_img(np.array([[fx + k * (gx - fx), fy + k * (gy - fy)]]))
+
+    gy = far.detection_y[0] + 6.0
+    assert fy + k * (gy - fy) < far.y_extent[1]
+    assert z.lane_at_px(top(gy))[0] == 0
+    assert z.lane_at_px(top(gy), lifted=True)[0] == far.index
     on_lane = z.H.road_to_img(np.array([[float(far.polygon_m[:, 0].mean()), gy]]))
     assert z.lane_at_px(on_lane, lifted=True)[0] == z.lane_at_px(on_lane)[0] == far.index
+    # the top of a box at the detection zone's far end is projected beyond the lane's: nothing is searched there
+    gy = far.detection_y[1] - 1.0
+    assert fy + k * (gy - fy) > far.y_extent[1] + LANE_MARGIN_M + 1.0
+    assert z.lane_at_px(top(gy), lifted=True)[0] == 0
 
 
 @pytest.mark.parametrize("n, counted", [(10, 1), (24, 2)])
