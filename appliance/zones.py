@@ -14,7 +14,9 @@ import numpy as np
 from appliance.config import SiteConfig, clip_polygon_y
 from appliance.geometry import Homography
 
-LANE_MARGIN_M = 2.0  # features this far beyond their lane's along-road extent are dropped (pipeline)
+# features further than this beyond their lane's along-road extent are dropped (pipeline) and not searched for
+# off the lanes (SiteZones._lifted)
+LANE_MARGIN_M = 2.0
 DETECTION_ROW_SHARE = 0.7  # share of the rows between the entry edge and the count line where features start
 EXIT_ROW_SHARE = 0.12  # exit share of the lane's image rows where vehicles are finalised
 TALLEST_M = 4.5  # the tallest vehicle: bounds how much further its top is seen than the road under it
@@ -178,9 +180,9 @@ class SiteZones:
             if len(part) < 3:
                 continue
             hull = cv2.convexHull(np.concatenate([part, foot + (part - foot) * self.k_max]).astype(np.float32))
-            # no further along the road than the lane's features live (their projected place beyond the lane's
-            # far end drops them): a top seen there is of a vehicle too far away to hold features anyway
-            hull = clip_polygon_y(hull.reshape(-1, 2).astype(np.float64), lz.y_extent[0] - LANE_MARGIN_M,
+            # only where a corner's projected place lies within the lane's along-road extent plus LANE_MARGIN_M:
+            # beyond it the pipeline drops the feature the next frame, so searching there only spends corners
+            hull = clip_polygon_y(hull.reshape(-1, 2), lz.y_extent[0] - LANE_MARGIN_M,
                                   lz.y_extent[1] + LANE_MARGIN_M)
             if len(hull) < 3:
                 continue

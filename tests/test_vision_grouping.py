@@ -1217,7 +1217,7 @@ def test_features_found_off_the_lanes_never_make_a_vehicle_of_their_own():
 def test_the_tops_of_the_far_lanes_vehicles_are_searched_off_the_lanes_under_its_label():
     """Beyond the lane furthest from the camera's foot, where a truck's box in it is seen, corners are searched
     and labelled with that lane; on the lanes nothing changes (their own label). Not where the box's top is
-    projected beyond the lane's far end: a feature placed there is dropped (pipeline.LANE_MARGIN_M)."""
+    projected beyond the lane's far end: a feature placed there is dropped (zones.LANE_MARGIN_M)."""
     site = parse_site(site_dict())
     z = SiteZones(site)
     assert z.camera is not None and z.lifted_zone is not None
@@ -1225,8 +1225,8 @@ def test_the_tops_of_the_far_lanes_vehicles_are_searched_off_the_lanes_under_its
     fx, fy, ch = z.camera
     far = max(z.lanes, key=lambda lz: abs(float(lz.polygon_m[:, 0].mean()) - fx))
     edge = far.polygon_m[:, 0].min() if far.polygon_m[:, 0].mean() < fx else far.polygon_m[:, 0].max()
-    k = ch / (ch - 3.5)  # a box top 3.5 m high over the lane's outer edge, near its detection zone's start
-    gx = edge - 0.3 * np.sign(fx - edge)
+    k = ch / (ch - 3.5)  # a box top 3.5 m high 0.3 m inside the lane's outer edge, near its detection zone's near end
+    gx = edge + 0.3 * np.sign(fx - edge)
 
     def top(gy: float) -> np.ndarray:
         return z.H.road_to_img(np.array([[fx + k * (gx - fx), fy + k * (gy - fy)]]))
